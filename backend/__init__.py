@@ -1,0 +1,1 @@
+"""Backend: GTSAM pose graph over keyframes."""

@@ -1,0 +1,1 @@
+"""YAML presets per dataset and per representation (installed as lrslam.configs)."""

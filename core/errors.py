@@ -1,0 +1,17 @@
+"""Exception types whose messages are shown to the user as one line (no traceback) by the CLI."""
+
+from __future__ import annotations
+
+__all__ = ["InputError", "DatasetError", "OptimisationError"]
+
+
+class InputError(ValueError):
+    """Bad user input (file, folder, config, intrinsics ...). The message names the culprit and the problem."""
+
+
+class DatasetError(InputError):
+    """A sequence that cannot be read: missing folder or file, corrupt image, unknown layout, ..."""
+
+
+class OptimisationError(RuntimeError):
+    """An optimisation that diverged (NaN loss, pose far outside the bound); callers log it and fall back."""

@@ -1,0 +1,138 @@
+"""SE(3)/SO(3) helpers on 4x4 float64 numpy poses.
+
+Convention: ``T_a_b`` maps points expressed in frame ``b`` into frame ``a``: ``p_a = T_a_b @ p_b``.
+A camera pose ``T_w_c`` maps camera-frame points (OpenCV, see :mod:`lrslam.camera`) into the world.
+Quaternions are ``(qx, qy, qz, qw)`` (TUM order, Hamilton, unit norm). 6-vectors (tangents) are ordered
+``[rotation (rad), translation (m)]`` like GTSAM and Open3D.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "make_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
+    "pose_error", "random_pose", "is_valid_pose", "relative",
+]
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a 4x4 float64 pose from a 3x3 rotation and a 3-vector translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def inv(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (4x4), or of a stack (N,4,4), computed in closed form."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def relative(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+    """``T_a_b = inv(T_w_a) @ T_w_b``: pose of b expressed in a."""
+    return inv(T_w_a) @ np.asarray(T_w_b, dtype=np.float64)
+
+
+def rot_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (...,3,3) -> unit quaternion (...,4) as (qx, qy, qz, qw), qw >= 0."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    q = np.where(q[..., 3:4] < 0, -q, q)
+    return q
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Quaternion(s) (...,4) as (qx, qy, qz, qw) (normalised here) -> rotation matrix (...,3,3)."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(~np.isfinite(q)) or np.any(norm < 1e-12):
+        raise ValueError("quaternion is not finite or has zero norm")
+    return Rotation.from_quat(q / norm).as_matrix()
+
+
+def pose_from_tum(values: np.ndarray) -> np.ndarray:
+    """``(..., 7)`` rows ``tx ty tz qx qy qz qw`` -> poses ``(..., 4, 4)``."""
+    v = np.asarray(values, dtype=np.float64)
+    T = np.zeros(v.shape[:-1] + (4, 4))
+    T[..., :3, :3] = quat_to_rot(v[..., 3:7])
+    T[..., :3, 3] = v[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def pose_to_tum(T: np.ndarray) -> np.ndarray:
+    """Poses ``(..., 4, 4)`` -> ``(..., 7)`` rows ``tx ty tz qx qy qz qw``."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([T[..., :3, 3], rot_to_quat(T[..., :3, :3])], axis=-1)
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Exponential map of a 6-vector ``[omega (rad), v (m)]`` -> 4x4 pose (exact, Rodrigues + V matrix)."""
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    w, v = xi[:3], xi[3:]
+    theta = np.linalg.norm(w)
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if theta < 1e-10:
+        R = np.eye(3) + W
+        V = np.eye(3) + 0.5 * W
+    else:
+        a = np.sin(theta) / theta
+        b = (1 - np.cos(theta)) / theta**2
+        c = (theta - np.sin(theta)) / theta**3
+        R = np.eye(3) + a * W + b * W @ W
+        V = np.eye(3) + b * W + c * W @ W
+    return make_pose(R, V @ v)
+
+
+def log_se3(T: np.ndarray) -> np.ndarray:
+    """Logarithm of a 4x4 pose -> 6-vector ``[omega (rad), v (m)]`` (inverse of :func:`exp_se3`)."""
+    T = np.asarray(T, dtype=np.float64)
+    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    theta = np.linalg.norm(w)
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if theta < 1e-10:
+        V_inv = np.eye(3) - 0.5 * W
+    else:
+        half = 0.5 * theta
+        k = (1 - half * np.cos(half) / np.sin(half)) / theta**2
+        V_inv = np.eye(3) - 0.5 * W + k * W @ W
+    return np.concatenate([w, V_inv @ T[:3, 3]])
+
+
+def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Difference between two poses: (translation error in metres, rotation error in degrees)."""
+    D = relative(T_a, T_b)
+    trans = float(np.linalg.norm(np.asarray(T_a)[:3, 3] - np.asarray(T_b)[:3, 3]))
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return trans, float(np.degrees(np.arccos(cos)))
+
+
+def random_pose(rng: np.random.Generator, max_trans_m: float, max_rot_deg: float) -> np.ndarray:
+    """Random rigid transform: translation uniform in a ball of radius ``max_trans_m``, rotation of angle
+    uniform in ``[0, max_rot_deg]`` about a random axis."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.uniform(0.0, max_rot_deg))
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    t = d * max_trans_m * rng.uniform(0.0, 1.0) ** (1.0 / 3.0)
+    return make_pose(Rotation.from_rotvec(axis * angle).as_matrix(), t)
+
+
+def is_valid_pose(T: np.ndarray, tol: float = 1e-4) -> bool:
+    """True when T is a finite 4x4 rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
+            and np.allclose(T[3], [0, 0, 0, 1], atol=tol))

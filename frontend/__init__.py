@@ -1,0 +1,1 @@
+"""Frontend: frames, dataset readers, synthetic sequences, odometry, keyframes and loop closure (numpy only)."""

@@ -1,0 +1,1 @@
+"""Evaluation (reads ground truth; algorithm code never imports this)."""
