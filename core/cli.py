@@ -1,4 +1,4 @@
-"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``params``.
+"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``batch``, ``params``.
 
 Each command's body lives next to the code it drives (``*/cli.py`` modules); heavy libraries (torch, open3d,
 gtsam) are imported inside the command functions so ``lrslam --help`` stays fast. Known input errors are
@@ -19,13 +19,14 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 def _register() -> None:
     from lrslam.frontend.synthetic.cli import synth
-    from lrslam.pipeline.cli import params, run
+    from lrslam.pipeline.cli import batch, params, run
     from lrslam.pipeline.evaluation.cli import eval_app
 
     app.command("synth")(synth)
     app.add_typer(eval_app, name="eval")
     app.command("run")(run)
     app.command("params")(params)
+    app.command("batch")(batch)
 
 
 def main() -> None:

@@ -1,0 +1,148 @@
+"""``lrslam run`` and ``lrslam params`` (registered in :mod:`lrslam.cli`). Heavy imports stay inside."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from lrslam.errors import InputError
+
+__all__ = ["run", "params", "DEMO_SYNTH"]
+
+# The built-in demo sequence: a textured room, a loop trajectory, Kinect-like depth noise.
+DEMO_SYNTH = dict(scene="room", trajectory="loop", n_frames=80, seed=0, width=320, height=240)
+
+
+def _summary_lines(metrics: dict, out: Path) -> list[str]:
+    lines = [f"mode: {metrics['mode']}   frames: {metrics['n_frames']}   keyframes: {metrics['n_keyframes']}"
+             f"   loop closures: {metrics['n_loop_closures']}"]
+    if "ate_rmse_cm" in metrics:
+        lines.append(f"ATE RMSE: {metrics['ate_rmse_cm']:.3f} cm   mean: {metrics['ate_mean_cm']:.3f} cm"
+                     + (f"   (seed only: {metrics['seed_ate_rmse_cm']:.3f} cm)" if "seed_ate_rmse_cm" in metrics else ""))
+    else:
+        lines.append("ATE: no ground truth in this sequence")
+    if "mesh_accuracy_cm" in metrics:
+        lines.append(f"mesh: accuracy {metrics['mesh_accuracy_cm']:.2f} cm   completion {metrics['mesh_completion_cm']:.2f} cm"
+                     f"   completion ratio {metrics['mesh_completion_ratio']:.1f} %")
+    lines.append(f"frame processing time: {metrics['fpt_s']:.3f} s/frame   (wall {metrics['wall_s']:.1f} s)")
+    stages = ", ".join(f"{k} {v['per_frame_s']:.3f}" for k, v in metrics.get("timings", {}).items())
+    lines.append(f"per-stage s/frame: {stages}")
+    if "parameters" in metrics:
+        p = metrics["parameters"]
+        lines.append("field parameters: " + ", ".join(f"{k} {v:,}" for k, v in p.items()))
+    for name in ("trajectory.txt", "keyframes.txt", "mesh.ply", "trajectory.png", "metrics.json", "config.yaml"):
+        if (out / name).exists():
+            lines.append(f"  wrote {out / name}")
+    return lines
+
+
+def run(
+    path: Optional[Path] = typer.Argument(None, help="Sequence folder (TUM, Replica, ScanNet, 7-Scenes, synthetic)."),
+    out: Path = typer.Option(Path("runs/latest"), "--out", "-o", help="Run folder to write."),
+    mode: Optional[str] = typer.Option(None, help="field | frontend | fused (default from config: fused)."),
+    config: Optional[str] = typer.Option(None, "--config", "-c",
+                                         help="Dataset preset name (replica, scannet, tum, 7scenes, synthetic, ...) "
+                                              "or a YAML file."),
+    representation: Optional[str] = typer.Option(None, "--repr", help="Representation preset (lrslam, eslam, cp-cp, "
+                                                                       "sa-sa, sa-cp, cp-sa)."),
+    overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override, e.g. --set schedule.map_every=2"),
+    max_frames: Optional[int] = typer.Option(None, help="Process at most this many frames."),
+    demo: bool = typer.Option(False, "--demo", help="Generate the built-in synthetic sequence and run on it."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+) -> None:
+    """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT."""
+    from lrslam.pipeline.config import build_config
+    from lrslam.pipeline.run import run_sequence
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if demo:
+        from lrslam.frontend.synthetic.writer import generate
+
+        path = out / "sequence"
+        if not (path / "scene.yaml").is_file():
+            typer.echo(f"generating the demo sequence in {path} ...")
+            generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
+        config = config or "synthetic"
+    if path is None:
+        raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
+    ov = list(overrides or [])
+    if max_frames is not None:
+        ov.append(f"dataset.options.max_frames={max_frames}")
+    cfg = build_config(config, representation, overrides=ov, mode=mode)
+    res = run_sequence(path, cfg, out, progress=not quiet)
+    for line in _summary_lines(res.metrics, Path(out)):
+        typer.echo(line)
+
+
+def _demo_noise():
+    from lrslam.frontend.synthetic.noise import NoiseConfig
+
+    return NoiseConfig(kinect=True)
+
+
+def params(
+    config: Optional[str] = typer.Option("replica", "--config", "-c", help="Dataset preset or YAML (gives the bound)."),
+    representation: Optional[str] = typer.Option(None, "--repr", help="One representation preset; default: all."),
+    bound: Optional[str] = typer.Option(None, help="Override bound: xmin,xmax,ymin,ymax,zmin,zmax (metres)."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+) -> None:
+    """Print the parameter table (f_g, f_a, total, as the paper's Table 1) for a config's bound."""
+    import numpy as np
+
+    from lrslam.field.model import SceneModel
+    from lrslam.pipeline.config import build_config, list_presets
+
+    cfg = build_config(config)
+    if bound:
+        vals = [float(x) for x in bound.split(",")]
+        if len(vals) != 6:
+            raise InputError("--bound needs 6 comma-separated numbers")
+        b = np.asarray(vals).reshape(3, 2)
+    elif cfg.bound is not None:
+        b = np.asarray(cfg.bound)
+    else:
+        raise InputError(f"config {config!r} has no bound; pass --bound")
+    names = [representation] if representation else list_presets("representation")
+    rows = {}
+    for name in names:
+        rcfg = build_config(config, name)
+        counts = SceneModel(b, rcfg.field_config().model).parameter_count()
+        rows[name] = counts
+    if as_json:
+        typer.echo(json.dumps({"bound": b.tolist(), "parameters": rows}, indent=2))
+        return
+    typer.echo(f"bound {b.tolist()} (metres)")
+    typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'total':>12}{'decoders':>10}")
+    for name, c in rows.items():
+        typer.echo(f"{name:<16}{c['geometry'] / 1e6:>11.3f}M{c['appearance'] / 1e6:>11.3f}M"
+                   f"{c['total'] / 1e6:>11.3f}M{c.get('decoders', 0):>10,}")
+
+
+def batch(
+    paths: list[Path] = typer.Argument(..., help="One or more sequence folders."),
+    out: Path = typer.Option(Path("runs/batch"), "--out", "-o"),
+    modes: str = typer.Option("field,frontend,fused", help="Comma-separated modes to compare side by side."),
+    config: Optional[str] = typer.Option(None, "--config", "-c", help="Dataset preset or YAML (applies to all)."),
+    representation: Optional[str] = typer.Option(None, "--repr"),
+    overrides: Optional[list[str]] = typer.Option(None, "--set"),
+    max_frames: Optional[int] = typer.Option(None),
+    quiet: bool = typer.Option(False, "--quiet", "-q"),
+) -> None:
+    """Run every sequence in every mode and print the side-by-side comparison table (also OUT/comparison.md)."""
+    from lrslam.pipeline.batch import comparison_table, run_batch
+    from lrslam.pipeline.config import build_config
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    ov = list(overrides or []) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
+    configs = {}
+    for m in [x.strip() for x in modes.split(",") if x.strip()]:
+        if m not in ("field", "frontend", "fused"):
+            raise InputError(f"unknown mode {m!r}: use field, frontend or fused")
+        configs[m] = build_config(config, representation, overrides=ov, mode=m).model_dump(mode="json")
+    results = run_batch([str(p) for p in paths], configs, out, progress=not quiet)
+    typer.echo(comparison_table(results))
+    typer.echo(f"wrote {out / 'comparison.md'} and {out / 'comparison.json'}")

@@ -1,0 +1,106 @@
+"""Write a run folder's files and metrics (evaluation against ground truth happens here, not in the runner)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from lrslam.trajectory_io import write_tum
+
+__all__ = ["write_outputs"]
+
+log = logging.getLogger(__name__)
+
+
+def _mesh(runner, seq, poses, cfg, timer):
+    with timer("mesh"):
+        if runner.field is not None:
+            return runner.field.extract_mesh(cfg.output.mesh_resolution)
+        from lrslam.pipeline.tsdf import tsdf_mesh
+
+        return tsdf_mesh((seq[i] for i in range(len(poses))), poses, voxel=cfg.output.tsdf_voxel)
+
+
+def _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg) -> None:
+    from lrslam.pipeline.evaluation.ate import compute_ate
+
+    gt = seq.gt_poses()
+    if gt is None or not np.any(np.isfinite(gt[:, 0, 0])):
+        log.info("no ground truth: skipping ATE")
+        return
+    ok = np.isfinite(gt).all(axis=(1, 2))
+    res = compute_ate(timestamps, poses, np.asarray(seq.timestamps)[ok], gt[ok])
+    metrics.update(ate_rmse_cm=res.rmse_cm, ate_mean_cm=res.mean_cm, ate_median_cm=res.median_cm,
+                   ate_max_cm=res.max_cm, ate_matched=res.n_matched)
+    seed = metrics.pop("_seed_poses", None)
+    if seed is not None:
+        rs = compute_ate(timestamps, seed, np.asarray(seq.timestamps)[ok], gt[ok])
+        metrics["seed_ate_rmse_cm"] = rs.rmse_cm
+    gt_mesh = getattr(seq, "gt_mesh_path", None)
+    if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
+        import trimesh
+
+        from lrslam.pipeline.evaluation.mesh_metrics import cull_mesh, reconstruction_metrics
+
+        gt_m = trimesh.load(gt_mesh, force="mesh", process=False)
+        f0 = seq[0]
+        # both meshes culled against the ground-truth trajectory's frusta (ESLAM protocol)
+        views = gt[ok][:: max(1, int(ok.sum()) // 50)]
+        est_c = cull_mesh(mesh, views, f0.K, f0.width, f0.height)
+        gt_c = cull_mesh(gt_m, views, f0.K, f0.width, f0.height)
+        rec = reconstruction_metrics(est_c, gt_c, n_points=cfg.output.eval_mesh_points)
+        metrics.update({f"mesh_{k}": v for k, v in rec.items()})
+
+
+def write_outputs(out_dir: Path, cfg, seq, runner, timestamps, poses, logs, timer, wall_s, bound, bound_src,
+                  progress) -> dict:
+    """Write trajectory/keyframes/seed TUM files, the mesh, the plot; return the metrics dict."""
+    n = len(poses)
+    write_tum(out_dir / "trajectory.txt", timestamps, poses, header=f"lrslam {cfg.mode} T_w_c")
+    kf_ids = runner.traj.keyframe_ids()
+    write_tum(out_dir / "keyframes.txt", timestamps[kf_ids], poses[kf_ids], header="lrslam keyframes T_w_c")
+    seed = np.stack(runner.seed_poses[:n])
+    write_tum(out_dir / "trajectory_seed.txt", timestamps, seed, header="per-frame seed poses")
+
+    metrics: dict = {
+        "mode": cfg.mode, "n_frames": n, "n_keyframes": len(kf_ids), "n_loop_closures": runner.n_loops,
+        "n_remaps": runner.n_remaps, "wall_s": round(wall_s, 3), "fpt_s": round(wall_s / max(n, 1), 4),
+        "bound": np.round(bound, 4).tolist(), "bound_source": bound_src,
+        "seed_failures": sum(not r.seed_ok for r in logs),
+        "refine_failures": sum(r.refine_ok is False for r in logs),
+        "frames_without_depth": sum(any("no valid depth" in s for s in r.notes) for r in logs),
+    }
+    if runner.field is not None:
+        metrics["parameters"] = runner.field.parameter_count()
+        metrics["device"] = str(getattr(runner.field, "device", "cpu"))
+
+    mesh = None
+    if cfg.output.mesh:
+        try:
+            mesh = _mesh(runner, seq, poses, cfg, timer)
+            mesh.export(out_dir / "mesh.ply")
+        except Exception as e:  # a failed mesh must not lose the trajectory and metrics
+            log.error("mesh extraction failed: %s", e)
+            metrics["mesh_error"] = str(e)
+    if cfg.output.evaluate:
+        metrics["_seed_poses"] = seed
+        try:
+            _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg)
+        except Exception as e:
+            log.error("evaluation failed: %s", e)
+            metrics["evaluation_error"] = str(e)
+        metrics.pop("_seed_poses", None)
+    metrics["timings"] = timer.summary(n)
+    if cfg.output.plots:
+        try:
+            from lrslam.pipeline.plots import plot_trajectories
+
+            gt = seq.gt_poses()
+            gt_pair = (np.asarray(seq.timestamps), gt) if gt is not None else None
+            plot_trajectories(out_dir / "trajectory.png", {cfg.mode: (timestamps, poses), "seed": (timestamps, seed)},
+                              gt_pair, title=f"lrslam {cfg.mode}")
+        except Exception as e:
+            log.error("plotting failed: %s", e)
+    return metrics

@@ -1,0 +1,56 @@
+"""Unit tests of the pipeline's own pieces (no SLAM run)."""
+
+import numpy as np
+import pytest
+
+from lrslam.camera import intrinsics_matrix
+from lrslam.geometry import random_pose
+from lrslam.pipeline.anchored import AnchoredTrajectory
+from lrslam.pipeline.auto_bound import bound_from_frame
+from lrslam.pipeline.timing import StageTimer
+
+
+def test_anchored_trajectory_follows_keyframe_corrections(rng):
+    poses = [random_pose(rng, 1.0, 30.0) for _ in range(6)]
+    traj = AnchoredTrajectory()
+    for i, T in enumerate(poses):
+        traj.add(T, is_keyframe=i in (0, 3))
+    np.testing.assert_allclose(traj.poses(), np.stack(poses), atol=1e-12)
+    # move keyframe 3 by a correction C: frames 3..5 follow rigidly, frames 0..2 stay
+    C = random_pose(rng, 0.2, 5.0)
+    traj.update_keyframes({3: C @ poses[3]})
+    got = traj.poses()
+    np.testing.assert_allclose(got[:3], np.stack(poses[:3]), atol=1e-12)
+    np.testing.assert_allclose(got[3:], np.stack([C @ T for T in poses[3:]]), atol=1e-12)
+    assert traj.keyframe_ids() == [0, 3]
+
+
+def test_anchored_set_pose_of_non_keyframe(rng):
+    traj = AnchoredTrajectory()
+    traj.add(np.eye(4), is_keyframe=True)
+    traj.add(np.eye(4))
+    T = random_pose(rng, 0.5, 10.0)
+    traj.set_pose(1, T)
+    np.testing.assert_allclose(traj.pose(1), T, atol=1e-12)
+
+
+def test_bound_from_frame_contains_points_and_camera():
+    K = intrinsics_matrix(100.0, 100.0, 31.5, 23.5)
+    depth = np.full((48, 64), 2.0, dtype=np.float32)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    b = bound_from_frame(depth, K, T, margin=0.5)
+    assert b.shape == (3, 2)
+    # the wall at z = 2 m in the camera lies at world z = 5; the camera at z = 3
+    assert b[2, 0] == pytest.approx(3.0 - 0.5) and b[2, 1] == pytest.approx(5.0 + 0.5)
+    with pytest.raises(ValueError, match="no valid depth"):
+        bound_from_frame(np.zeros_like(depth), K, T)
+
+
+def test_stage_timer_accumulates():
+    t = StageTimer()
+    for _ in range(3):
+        with t("a"):
+            pass
+    s = t.summary(3)
+    assert s["a"]["calls"] == 3 and s["a"]["total_s"] >= 0
