@@ -60,19 +60,20 @@ def run(
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if demo:
+        config = config or "synthetic"
+    ov = list(overrides or [])
+    if max_frames is not None:
+        ov.append(f"dataset.options.max_frames={max_frames}")
+    cfg = build_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
+    if demo:
         from lrslam.frontend.synthetic.writer import generate
 
         path = out / "sequence"
         if not (path / "scene.yaml").is_file():
             typer.echo(f"generating the demo sequence in {path} ...")
             generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
-        config = config or "synthetic"
     if path is None:
         raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
-    ov = list(overrides or [])
-    if max_frames is not None:
-        ov.append(f"dataset.options.max_frames={max_frames}")
-    cfg = build_config(config, representation, overrides=ov, mode=mode)
     res = run_sequence(path, cfg, out, progress=not quiet)
     for line in _summary_lines(res.metrics, Path(out)):
         typer.echo(line)

@@ -1,0 +1,25 @@
+"""RGB-D dataset readers: one explicit registry ``name -> Sequence class`` and layout auto-detection.
+
+Usage::
+
+    from lrslam.frontend.datasets import ReaderOptions, open_sequence
+
+    seq = open_sequence("data/tum-fr1-rpy", options=ReaderOptions(stride=2))  # reader auto-detected: "tum"
+    for frame in seq:  # lrslam.frontend.frame.Frame, images loaded lazily
+        ...
+    gt = seq.gt_poses()  # (N, 4, 4) T_w_c or None; evaluation only
+
+Readers (see each module's docstring for layout, units and conventions): ``tum``, ``synthetic`` (TUM layout
++ ``scene.yaml``, written by ``lrslam synth``), ``replica`` (NICE-SLAM layout), ``scannet``, ``7scenes``.
+Every reader returns depth in metres (float32, 0 = invalid), colour as uint8 RGB, K for the output images and
+ground-truth poses ``T_w_c`` with OpenCV camera axes.
+"""
+
+from lrslam.frontend.datasets.base import Sequence, SourceIndex
+from lrslam.frontend.datasets.options import ReaderOptions
+from lrslam.frontend.datasets.registry import READERS, detect_layout, open_sequence, register
+
+# Importing the reader modules registers them (order = order of READERS).
+from lrslam.frontend.datasets import tum, synthetic, replica, scannet, sevenscenes  # noqa: E402,F401  isort: skip
+
+__all__ = ["open_sequence", "detect_layout", "READERS", "register", "ReaderOptions", "Sequence", "SourceIndex"]

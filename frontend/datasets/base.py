@@ -125,7 +125,7 @@ class Sequence(abc.ABC):
         self._geometry = ImageGeometry(w, h, self.options.resize, self.options.crop_border)
         self.K = self._geometry.adjust_K(K_native)
         self.width, self.height = self._geometry.out_size
-        dist = src.distortion
+        dist = src.distortion if self.options.intrinsics_override() is None else None  # override = ideal pinhole
         self._undistort = (Undistorter(K_native, dist) if self.options.undistort and dist is not None
                            and np.any(np.asarray(dist) != 0) else None)
 

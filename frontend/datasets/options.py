@@ -29,7 +29,8 @@ class ReaderOptions(StrictModel):
         undistort: undistort the colour image with the camera's distortion model (TUM Freiburg 1/2 only; the
             depth image is left as is, like ESLAM).
         fx, fy, cx, cy: pinhole intrinsics (pixels, native image size) overriding the reader's own, for readers
-            whose intrinsics come from a config (Replica) or to correct a dataset. All four or none.
+            whose intrinsics come from a config (Replica) or to correct a dataset. All four or none. The override
+            describes an ideal pinhole camera: the reader's distortion model (TUM) is then not applied.
         depth_scale: raw depth units per metre (metres = raw / depth_scale), overriding the reader's own.
     """
 

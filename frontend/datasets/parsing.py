@@ -6,6 +6,7 @@ Each raises a one-line :class:`~lrslam.errors.DatasetError` naming the file (and
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,8 @@ import numpy as np
 from lrslam.errors import DatasetError
 from lrslam.geometry import is_valid_pose
 
-__all__ = ["read_numbers", "read_matrix", "as_pose_or_nan", "read_file_list", "NAN_POSE"]
+__all__ = ["read_numbers", "read_matrix", "as_pose_or_nan", "read_pose_files", "read_file_list", "numbered_files",
+           "NAN_POSE"]
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +49,13 @@ def read_matrix(path: Path, rows: int, cols: int) -> np.ndarray:
 
 
 def as_pose_or_nan(T: np.ndarray, source: str) -> np.ndarray:
-    """A 4x4 camera-to-world matrix read from ``source`` -> itself when it is a finite rigid transform, else a
-    NaN matrix (that frame has no ground truth). Non-finite matrices are normal in ScanNet (tracking lost) and
-    pass silently; finite non-rigid ones are logged."""
+    """A 4x4 camera-to-world matrix read from ``source`` -> a rigid transform, or a NaN matrix (no ground truth
+    for that frame).
+
+    Non-finite matrices are normal in ScanNet (tracking lost) and pass silently. Rotations within 1e-3 of
+    orthonormal are projected onto SO(3) (SVD; 7-Scenes stores its poses with errors of ~2e-4), so every
+    returned pose passes :func:`lrslam.geometry.is_valid_pose`; matrices further off are logged and dropped.
+    """
     T = np.asarray(T, dtype=np.float64).reshape(4, 4)
     if not np.all(np.isfinite(T)):
         return NAN_POSE.copy()
@@ -57,7 +63,43 @@ def as_pose_or_nan(T: np.ndarray, source: str) -> np.ndarray:
         log.warning("%s: ground-truth pose is not a rigid transform; treating this frame as having no ground "
                     "truth", source)
         return NAN_POSE.copy()
-    return T
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def read_pose_files(paths: list[Path]) -> np.ndarray | None:
+    """One 4x4 camera-to-world text file per frame -> (N, 4, 4) float64, NaN rows where a file is missing or
+    its pose invalid; None when none of the files exists (the dataset has no ground truth)."""
+    exists = [p.is_file() for p in paths]
+    if not any(exists):
+        return None
+    if not all(exists):
+        missing = [p for p, e in zip(paths, exists) if not e]
+        log.warning("%d of %d pose files are missing (first: %s); those frames have no ground truth",
+                    len(missing), len(paths), missing[0])
+    poses = np.full((len(paths), 4, 4), np.nan)
+    for k, (p, e) in enumerate(zip(paths, exists)):
+        if e:
+            poses[k] = as_pose_or_nan(read_matrix(p, 4, 4), str(p))
+    return poses
+
+
+def numbered_files(folder: Path, pattern: str) -> dict[int, Path]:
+    """Files of ``folder`` whose whole name matches ``pattern`` (a regex whose first group is the frame
+    number) -> ``{frame number: path}``. DatasetError when two files share a number."""
+    rx = re.compile(pattern)
+    out: dict[int, Path] = {}
+    for p in Path(folder).iterdir():
+        m = rx.fullmatch(p.name)
+        if m:
+            i = int(m.group(1))
+            if i in out:
+                raise DatasetError(f"{folder}: two files for frame {i}: {out[i].name} and {p.name}")
+            out[i] = p
+    return out
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:

@@ -84,9 +84,11 @@ def cull_mesh(mesh: trimesh.Trimesh | str | Path, poses: np.ndarray, K: np.ndarr
     (``0 < z``, and ``z <= max_depth`` metres when given) and, with ``occlusion``, when the first surface hit by
     the ray from the camera centre through it lies no more than ``occlusion_tol`` metres (along z) in front of it.
     A face is kept when any of its vertices was seen by any camera; unreferenced vertices are removed.
+    Non-finite poses are ignored.
     """
     mesh = load_mesh(mesh)
     poses = _poses(poses)[::max(1, int(stride))]
+    poses = poses[np.all(np.isfinite(poses), axis=(1, 2))]  # lost-tracking rows see nothing
     K = _intrinsics(K, width, height)
     if _is_empty(mesh):
         return mesh.copy()

@@ -1,0 +1,66 @@
+"""End-to-end runs of the pipeline on a tiny synthetic sequence: every mode writes a complete run folder."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lrslam.pipeline.config import build_config
+from lrslam.trajectory_io import read_tum
+
+# tiny and fast: these tests check plumbing, not accuracy (accuracy has its own tests and benchmarks)
+TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_iters=30",
+        "field.tracking.n_rays=256", "field.mapping.n_rays=512", "field.mesh.resolution=0.1",
+        "output.eval_mesh_points=5000"]
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory):
+    from lrslam.frontend.synthetic.writer import generate
+
+    out = tmp_path_factory.mktemp("seq") / "room"
+    generate(out, scene="room", trajectory="loop", n_frames=12, seed=1, width=160, height=120, show_progress=False)
+    return out
+
+
+@pytest.mark.parametrize("mode", ["field", "frontend", "fused"])
+def test_every_mode_writes_a_run_folder(tiny_sequence, tmp_path, mode):
+    from lrslam.pipeline.run import run_sequence
+
+    cfg = build_config("synthetic", overrides=TINY, mode=mode)
+    res = run_sequence(tiny_sequence, cfg, tmp_path / mode, progress=False)
+    out = tmp_path / mode
+    for name in ("config.yaml", "trajectory.txt", "keyframes.txt", "metrics.json", "mesh.ply", "trajectory.png",
+                 "run.log"):
+        assert (out / name).is_file(), name
+    ts, poses = read_tum(out / "trajectory.txt")
+    assert len(ts) == 12 and np.all(np.isfinite(poses))
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mode"] == mode and m["n_frames"] == 12 and np.isfinite(m["ate_rmse_cm"]) and m["fpt_s"] > 0
+    assert res.metrics["ate_rmse_cm"] == m["ate_rmse_cm"]
+    if mode != "frontend":
+        assert m["parameters"]["total"] > 0
+
+
+@pytest.mark.parametrize("args", [["run", "{tmp}/missing"], ["run", "{tmp}"], ["eval", "ate", "{tmp}/a", "{tmp}/b"],
+                                  ["run", "--demo", "--config", "nope"]])
+def test_cli_bad_input_is_one_line_error(tmp_path, args):
+    import subprocess
+    import sys
+
+    args = [a.format(tmp=tmp_path) for a in args]
+    r = subprocess.run([sys.executable, "-m", "lrslam", *args, "--out", str(tmp_path / "o")] if args[0] == "run"
+                       else [sys.executable, "-m", "lrslam", *args], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().startswith("error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_unknown_config_key_is_rejected():
+    from lrslam.errors import InputError
+
+    with pytest.raises(InputError, match="schedule"):
+        build_config("synthetic", overrides=["schedule.map_evry=2"])
+    with pytest.raises(InputError, match="unknown dataset preset"):
+        build_config("no-such-preset")
