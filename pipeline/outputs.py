@@ -40,16 +40,16 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg) -> None:
         metrics["seed_ate_rmse_cm"] = rs.rmse_cm
     gt_mesh = getattr(seq, "gt_mesh_path", None)
     if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
-        import trimesh
+        from lrslam.pipeline.evaluation.mesh_metrics import cull_mesh, load_mesh, reconstruction_metrics
 
-        from lrslam.pipeline.evaluation.mesh_metrics import cull_mesh, reconstruction_metrics
-
-        gt_m = trimesh.load(gt_mesh, force="mesh", process=False)
+        gt_m = load_mesh(gt_mesh)
         f0 = seq[0]
-        # both meshes culled against the ground-truth trajectory's frusta (ESLAM protocol)
-        views = gt[ok][:: max(1, int(ok.sum()) // 50)]
-        est_c = cull_mesh(mesh, views, f0.K, f0.width, f0.height)
-        gt_c = cull_mesh(gt_m, views, f0.K, f0.width, f0.height)
+        # the estimate lives in its own world: move it into the GT world with the trajectory's ATE alignment,
+        # then cull both meshes against the ground-truth trajectory's frusta (ESLAM protocol)
+        est = mesh.copy().apply_transform(res.T_align)
+        stride = max(1, int(ok.sum()) // 50)
+        est_c = cull_mesh(est, gt[ok], f0.K, f0.width, f0.height, stride=stride)
+        gt_c = cull_mesh(gt_m, gt[ok], f0.K, f0.width, f0.height, stride=stride)
         rec = reconstruction_metrics(est_c, gt_c, n_points=cfg.output.eval_mesh_points)
         metrics.update({f"mesh_{k}": v for k, v in rec.items()})
 
