@@ -36,7 +36,7 @@ from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alig
                                        normal_spread, valid_mask, view_problem)
 from lrslam.geometry import inv, is_valid_pose, pose_error
 
-__all__ = ["OdometryConfig", "RegistrationResult", "register_rgbd", "fallback_information"]
+__all__ = ["OdometryConfig", "RegistrationResult", "register_rgbd", "fallback_information", "frame_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +63,8 @@ class OdometryConfig(StrictModel):
     voxel_size: float = Field(0.02, gt=0)
     icp_estimation: Literal["point_to_plane", "colored"] = "point_to_plane"
     icp_distance_factor: float = Field(2.5, gt=0)
-    kiss_sigmas: tuple[float, ...] = Field((0.05, 0.015, 0.005), description="kernel widths (m), coarse to fine; "
-                                           "correspondences up to 3 sigma, as KISS-ICP")
+    kiss_levels: int = Field(4, gt=0, description="KISS-ICP voxel scales voxel_size * 2**k, k = levels-1 .. 0 "
+                             "(its correspondence search only reaches the neighbouring voxels)")
     kiss_max_points_per_voxel: int = Field(20, gt=0)
     kiss_max_iterations: int = Field(100, gt=0)
     # Quality measure (projective association) and information normalisation.
@@ -97,8 +97,6 @@ class OdometryConfig(StrictModel):
             raise ValueError(f"depth_min ({self.depth_min}) must be < depth_max ({self.depth_max})")
         if not self.iterations or any(i <= 0 for i in self.iterations):
             raise ValueError(f"iterations must be a non-empty list of positive counts, got {self.iterations}")
-        if not self.kiss_sigmas or any(s <= 0 for s in self.kiss_sigmas):
-            raise ValueError(f"kiss_sigmas must be a non-empty list of positive widths, got {self.kiss_sigmas}")
         return self
 
 
@@ -129,6 +127,14 @@ def fallback_information(cfg: OdometryConfig) -> np.ndarray:
     return diagonal_information(np.radians(cfg.fallback_sigma_rotation), cfg.fallback_sigma_translation)
 
 
+def frame_problem(view: RGBDView, cfg: OdometryConfig) -> str | None:
+    """Why ``view`` cannot be registered with ``cfg``'s method (no valid depth, featureless), or None."""
+    uses_colour = cfg.method == "rgbd" or (cfg.method == "icp" and cfg.icp_estimation == "colored")
+    return view_problem(view, depth_min=cfg.depth_min, depth_max=cfg.depth_max,
+                        min_valid_fraction=cfg.min_valid_depth_fraction, min_intensity_std=cfg.min_intensity_std,
+                        min_normal_spread=cfg.min_normal_spread, uses_colour=uses_colour)
+
+
 def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, init_T_tgt_src: np.ndarray,
                   cfg: OdometryConfig) -> RegistrationResult:
     """Register the source RGB-D frame to the target one, starting from ``init_T_tgt_src`` (4x4).
@@ -143,17 +149,13 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
     if not is_valid_pose(init):
         raise ValueError("init_T_tgt_src must be a finite 4x4 rigid transform")
 
-    def fail(reason: str, T: np.ndarray = init, fitness: float = 0.0, rmse: float = float("inf")):
+    def fail(reason: str, fitness: float = 0.0, rmse: float = float("inf")) -> RegistrationResult:
         log.info("registration rejected: %s", reason)
         return RegistrationResult(init.copy(), fallback_information(cfg), fitness, rmse, False, reason)
 
     # 1. Can these views be registered at all?
     for name, view in (("source", src), ("target", tgt)):
-        problem = view_problem(view, depth_min=cfg.depth_min, depth_max=cfg.depth_max,
-                               min_valid_fraction=cfg.min_valid_depth_fraction,
-                               min_intensity_std=cfg.min_intensity_std, min_normal_spread=cfg.min_normal_spread,
-                               uses_colour=cfg.method == "rgbd" or (cfg.method == "icp"
-                                                                     and cfg.icp_estimation == "colored"))
+        problem = frame_problem(view, cfg)
         if problem is not None:
             return fail(f"{name}: {problem}")
 
@@ -172,11 +174,11 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
                          depth_max=cfg.depth_max, sigma_m=cfg.information_sigma)
     d_t, d_r = pose_error(init, T)
     if q.fitness < cfg.min_fitness:
-        return fail(f"fitness {q.fitness:.3f} < {cfg.min_fitness}", T, q.fitness, q.inlier_rmse)
+        return fail(f"fitness {q.fitness:.3f} < {cfg.min_fitness}", q.fitness, q.inlier_rmse)
     if q.inlier_rmse > cfg.max_inlier_rmse:
-        return fail(f"inlier RMSE {q.inlier_rmse:.4f} m > {cfg.max_inlier_rmse}", T, q.fitness, q.inlier_rmse)
+        return fail(f"inlier RMSE {q.inlier_rmse:.4f} m > {cfg.max_inlier_rmse}", q.fitness, q.inlier_rmse)
     if d_t > cfg.max_translation or d_r > cfg.max_rotation:
-        return fail(f"correction of the initial guess too large ({d_t:.3f} m, {d_r:.1f} deg)", T, q.fitness,
+        return fail(f"correction of the initial guess too large ({d_t:.3f} m, {d_r:.1f} deg)", q.fitness,
                     q.inlier_rmse)
     info = q.information * (cfg.information_sigma / max(cfg.information_sigma, q.inlier_rmse)) ** 2
     return RegistrationResult(T, info, q.fitness, q.inlier_rmse, True, "")
@@ -250,7 +252,7 @@ def _points(view: RGBDView, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray
 
 
 def _o3d_cloud(view: RGBDView, cfg: OdometryConfig):
-    """Open3D tensor point cloud at half the finest voxel size, with normals and colours."""
+    """Open3D tensor point cloud downsampled at the finest voxel size, with normals and colours."""
     import open3d as o3d
 
     key = ("o3d_cloud", cfg.depth_min, cfg.depth_max, cfg.voxel_size)
@@ -259,7 +261,7 @@ def _o3d_cloud(view: RGBDView, cfg: OdometryConfig):
         pts, cols = _points(view, cfg)
         pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(np.float32)))
         pcd.point.colors = o3d.core.Tensor(cols.astype(np.float32))
-        pcd = pcd.voxel_down_sample(0.5 * cfg.voxel_size)
+        pcd = pcd.voxel_down_sample(cfg.voxel_size)
         pcd.estimate_normals(max_nn=30, radius=2.0 * cfg.voxel_size)
         return pcd
 
@@ -284,25 +286,27 @@ def _register_o3d_icp(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odome
 
 
 def _register_kiss(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+    """KISS-ICP's point-to-map registration, coarse to fine. At each scale with voxel size ``v`` the target map
+    keeps the points at ``v / 2`` and the source is registered at ``1.5 v`` (as ``KissICP.voxelize``), with
+    kernel ``v`` and correspondences up to ``3 v`` (its search only reaches neighbouring voxels, so a single
+    fine scale cannot recover motions of more than about one voxel)."""
     from kiss_icp.mapping import VoxelHashMap
     from kiss_icp.registration import Registration
     from kiss_icp.voxelization import voxel_down_sample
 
-    v = cfg.voxel_size
-
-    def build_map():
-        # As KissICP.voxelize: the map keeps the frame at half the voxel size, the source is registered at 1.5.
+    def build_map(v: float) -> VoxelHashMap:
         voxel_map = VoxelHashMap(voxel_size=v, max_distance=2.0 * cfg.depth_max,
                                  max_points_per_voxel=cfg.kiss_max_points_per_voxel)
         voxel_map.add_points(voxel_down_sample(_points(tgt, cfg)[0], 0.5 * v))
         return voxel_map
 
-    voxel_map = tgt.cached(("kiss_map", cfg.depth_min, cfg.depth_max, v, cfg.kiss_max_points_per_voxel), build_map)
-    source = src.cached(("kiss_source", cfg.depth_min, cfg.depth_max, v),
-                        lambda: voxel_down_sample(_points(src, cfg)[0], 1.5 * v))
     registration = Registration(max_num_iterations=cfg.kiss_max_iterations, convergence_criterion=1e-4)
     T = init
-    for sigma in cfg.kiss_sigmas:
+    for k in reversed(range(cfg.kiss_levels)):
+        v = cfg.voxel_size * 2 ** k
+        key = (cfg.depth_min, cfg.depth_max, v)
+        voxel_map = tgt.cached(("kiss_map", cfg.kiss_max_points_per_voxel) + key, lambda: build_map(v))
+        source = src.cached(("kiss_source",) + key, lambda: voxel_down_sample(_points(src, cfg)[0], 1.5 * v))
         T = registration.align_points_to_map(points=source, voxel_map=voxel_map, initial_guess=T,
-                                             max_correspondance_distance=3.0 * sigma, kernel=sigma)
+                                             max_correspondance_distance=3.0 * v, kernel=v)
     return np.asarray(T, dtype=np.float64)

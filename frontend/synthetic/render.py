@@ -54,8 +54,8 @@ class Renderer:
 
     def cast(self, T_w_c: np.ndarray, dirs_c: np.ndarray) -> dict[str, np.ndarray]:
         """Cast camera-frame directions (M, 3) from pose T_w_c (4, 4). Returns ``t`` (M,) float32 in units
-        of the direction length (inf = miss), ``points`` (M, 3) float32 world hit points (0 = miss), ``primitive`` (M,) int64
-        scene primitive id (-1 = miss)."""
+        of the direction length (inf = miss), ``points`` (M, 3) float32 world hit points (0 = miss) and
+        ``primitive`` (M,) int64 scene primitive ids (-1 = miss)."""
         import open3d as o3d
 
         T = np.asarray(T_w_c, dtype=np.float64)

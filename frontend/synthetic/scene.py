@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 
 from lrslam.errors import InputError
+from lrslam.frontend.synthetic import meshes
 from lrslam.frontend.synthetic.trajectories import camera_region
 
 __all__ = ["SCENES", "Primitive", "Scene", "make_scene"]
@@ -126,7 +127,12 @@ class Scene:
         mesh.compute_vertex_normals()
         return mesh
 
-    def trimesh(self) -> trimesh.Trimesh:
+    def __getstate__(self) -> dict:  # picklable (e.g. for distributed runs): the Open3D raycaster is rebuilt
+        state = dict(self.__dict__)
+        state["_raycaster"] = None
+        return state
+
+    def to_trimesh(self) -> trimesh.Trimesh:
         """The scene as a ``trimesh.Trimesh`` (vertex colours set, vertices not merged)."""
         return trimesh.Trimesh(self.vertices, self.triangles, vertex_colors=self.vertex_colours(), process=False)
 
@@ -143,8 +149,8 @@ class Scene:
         return self._raycaster
 
     def export_mesh(self, path: str | Path) -> Path:
-        """Write the mesh (binary PLY, vertex colours + normals) to ``path``; returns the path. ~7 MB for
-        ``room``, ~13 MB for ``cluttered`` at the default 2.5 cm edges."""
+        """Write the mesh (binary PLY, vertex colours + normals) to ``path``; returns the path. ~9 MB for
+        ``room``, ~15 MB for ``cluttered`` at the default 2.5 cm edges (kept under 20 MB)."""
         import open3d as o3d
 
         path = Path(path)
@@ -152,80 +158,6 @@ class Scene:
         if not o3d.io.write_triangle_mesh(str(path), self.triangle_mesh(), write_ascii=False):
             raise OSError(f"{path}: could not write the mesh")
         return path
-
-
-# ---- mesh builders (each returns vertices (V, 3), triangles (T, 3); CCW = front) -------------------------
-
-def _grid(origin: np.ndarray, U: np.ndarray, V: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray]:
-    """Rectangle origin + a U + b V, a, b in [0, 1], as a regular grid; front normal along U x V."""
-    nu = max(1, int(np.ceil(np.linalg.norm(U) / edge)))
-    nv = max(1, int(np.ceil(np.linalg.norm(V) / edge)))
-    a, b = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1), indexing="ij")
-    verts = origin + a.reshape(-1, 1) * U + b.reshape(-1, 1) * V
-    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
-    v00 = (i * (nv + 1) + j).reshape(-1)
-    v10, v01, v11 = v00 + nv + 1, v00 + 1, v00 + nv + 2
-    tris = np.concatenate([np.stack([v00, v10, v11], -1), np.stack([v00, v11, v01], -1)])
-    return verts, tris
-
-
-def _concat(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    verts, tris, off = [], [], 0
-    for v, t in parts:
-        verts.append(v)
-        tris.append(t + off)
-        off += len(v)
-    return np.concatenate(verts), np.concatenate(tris)
-
-
-def _box_faces(centre: np.ndarray, half: np.ndarray, R: np.ndarray, edge: float, inward: bool = False,
-               skip_bottom: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The 6 faces (or 5 without the -z face) of an oriented box as grids; normals outward or inward."""
-    faces = []
-    for a in range(3):
-        b, c = (a + 1) % 3, (a + 2) % 3
-        for s in (1.0, -1.0):
-            if skip_bottom and a == 2 and s < 0:
-                continue
-            eb, ec, ea = np.eye(3)[b] * 2 * half[b], np.eye(3)[c] * 2 * half[c], np.eye(3)[a] * half[a]
-            corner = s * ea - 0.5 * eb - 0.5 * ec
-            U, V = (eb, ec) if (s > 0) != inward else (ec, eb)
-            v, t = _grid(corner, U, V, edge)
-            faces.append((centre + v @ R.T, t))
-    return faces
-
-
-def _cylinder(base: np.ndarray, radius: float, height: float, edge: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vertical cylinder standing on ``base`` (side + top cap, no bottom), outward normals."""
-    ns = int(np.clip(np.ceil(2 * np.pi * radius / edge), 24, 256))
-    nh = max(1, int(np.ceil(height / edge)))
-    th = np.linspace(0, 2 * np.pi, ns + 1)
-    z = np.linspace(0, height, nh + 1)
-    T, Z = np.meshgrid(th, z, indexing="ij")
-    side_v = np.stack([radius * np.cos(T), radius * np.sin(T), Z], -1).reshape(-1, 3)
-    i, j = np.meshgrid(np.arange(ns), np.arange(nh), indexing="ij")
-    v00 = (i * (nh + 1) + j).reshape(-1)
-    v10, v01, v11 = v00 + nh + 1, v00 + 1, v00 + nh + 2
-    side_t = np.concatenate([np.stack([v00, v10, v11], -1), np.stack([v00, v11, v01], -1)])
-    nr = max(1, int(np.ceil(radius / edge)))
-    rr = np.linspace(0, radius, nr + 1)[1:]
-    R_, T_ = np.meshgrid(rr, th[:-1], indexing="ij")  # ring k, angle m
-    cap_v = np.concatenate([[[0.0, 0.0, height]],
-                            np.stack([R_ * np.cos(T_), R_ * np.sin(T_), np.full_like(R_, height)], -1).reshape(-1, 3)])
-    m = np.arange(ns)
-    ring = lambda k, mm: 1 + k * ns + (mm % ns)  # noqa: E731
-    cap_t = [np.stack([np.zeros(ns, dtype=np.int64), ring(0, m), ring(0, m + 1)], -1)]
-    for k in range(nr - 1):
-        cap_t += [np.stack([ring(k, m), ring(k + 1, m), ring(k + 1, m + 1)], -1),
-                  np.stack([ring(k, m), ring(k + 1, m + 1), ring(k, m + 1)], -1)]
-    v, t = _concat([(side_v, side_t), (cap_v, np.concatenate(cap_t))])
-    return v + base, t
-
-
-def _sphere(centre: np.ndarray, radius: float, edge: float) -> tuple[np.ndarray, np.ndarray]:
-    level = int(np.clip(np.ceil(np.log2(1.05 * radius / edge)), 2, 6))  # icosphere edge ~ 1.05 r / 2^level
-    m = trimesh.creation.icosphere(subdivisions=level, radius=radius)
-    return np.asarray(m.vertices) + centre, np.asarray(m.faces, dtype=np.int64)
 
 
 # ---- layout --------------------------------------------------------------------------------------------------
@@ -314,7 +246,7 @@ def _texture(rng: np.random.Generator, kind: str) -> tuple[np.ndarray, np.ndarra
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     lam = np.exp(rng.uniform(np.log(0.06), np.log(0.6), n))  # wavelength, metres
-    amp = (lam / 0.6) ** 0.3
+    amp = (lam / 0.6) ** 0.7  # fine scales weaker: colour gradients stay moderate at the pixel scale
     for sl in (slice(0, _N_LUMA), slice(_N_LUMA, n)):  # unit variance per pattern: sum(a^2)/2 = 1
         amp[sl] /= np.sqrt(0.5 * np.sum(amp[sl] ** 2))
     return np.stack([base, accent]), d * (2 * np.pi / lam)[:, None], rng.uniform(0, 2 * np.pi, n), amp
@@ -348,8 +280,8 @@ def make_scene(name: str = "room", seed: int = 0, size: tuple[float, float, floa
     keep_out = camera_region(bound) + np.array([-CLEARANCE - 0.05, CLEARANCE + 0.05])
 
     # 1. the room: one primitive per face (floor, ceiling, 4 walls), normals pointing inwards
-    faces = _box_faces(room.mean(axis=1), size_a / 2, np.eye(3), mesh_edge, inward=True)
-    order = [5, 4, 0, 1, 2, 3]  # _box_faces order: +x, -x, +y, -y, +z, -z -> floor, ceiling, walls
+    faces = meshes.box_faces(room.mean(axis=1), size_a / 2, np.eye(3), mesh_edge, inward=True)
+    order = [5, 4, 0, 1, 2, 3]  # box_faces order: +x, -x, +y, -y, +z, -z -> floor, ceiling, walls
     kinds = ["floor", "ceiling", "wall", "wall", "wall", "wall"]
     prims = [Primitive(k, {"face": i}, room.copy()) for k, i in zip(kinds, order)]
     parts = [faces[i] for i in order]
@@ -364,17 +296,17 @@ def make_scene(name: str = "room", seed: int = 0, size: tuple[float, float, floa
                  sum(p is None for p in placed), len(placed))
     for p in (p for p in placed if p is not None):
         if p.kind == "box":
-            geom = _concat(_box_faces(p.params["centre"], p.params["half"], _rot_z(p.params["yaw"]), mesh_edge,
-                                      skip_bottom=True))
+            geom = meshes.concat(meshes.box_faces(p.params["centre"], p.params["half"], _rot_z(p.params["yaw"]),
+                                                  mesh_edge, skip_bottom=True))
         elif p.kind == "cylinder":
-            geom = _cylinder(p.params["base"], p.params["radius"], p.params["height"], mesh_edge)
+            geom = meshes.cylinder(p.params["base"], p.params["radius"], p.params["height"], mesh_edge)
         else:
-            geom = _sphere(p.params["centre"], p.params["radius"], mesh_edge)
+            geom = meshes.sphere(p.params["centre"], p.params["radius"], mesh_edge)
         prims.append(p)
         parts.append(geom)
 
     # 3. one mesh, triangle -> primitive map, textures
-    verts, tris = _concat(parts)
+    verts, tris = meshes.concat(parts)
     tri_prim = np.repeat(np.arange(len(parts)), [len(t) for _, t in parts])
     tex = [_texture(rng, p.kind) for p in prims]
     f32 = lambda i: np.stack([t[i] for t in tex]).astype(np.float32)  # noqa: E731

@@ -34,7 +34,8 @@ def camera_region(bound: np.ndarray) -> np.ndarray:
     """Box (3, 2) in metres where cameras may go, derived from a scene bound (3, 2).
 
     x, y: centred, half-width ``clip(ext / 2 - 1.3, 0.25, 0.2 ext)`` for a bound extent ``ext`` (0.8 x 0.3 m
-    half-widths in the 4 x 3 m ``room``), which leaves a >= 0.45 m band along the walls for furniture;
+    half-widths in the 4 x 3 m ``room``), which leaves a >= 0.45 m band along the walls of rooms >= 2.5 m for
+    furniture;
     z: from 40 % to 65 % of the bound height (about 1.0-1.65 m above the floor in a 2.5 m room).
     :func:`lrslam.frontend.synthetic.scene.make_scene` places objects so that they stay at least 0.5 m away from
     this box (low objects may sit below it).
@@ -116,10 +117,22 @@ def _circle(region: np.ndarray, rng: np.random.Generator, helix: bool) -> Curve:
 
 
 def _random_walk(region: np.ndarray, rng: np.random.Generator, n_knots: int) -> Curve:
-    """Monotone (PCHIP) interpolation of random knots: C1, never leaves the knots' box (no overshoot)."""
+    """Monotone (PCHIP) interpolation of random-walk knots: C1, never leaves the knots' box (no overshoot).
+
+    Consecutive knots are 0.15-0.45 m and 15-45 deg of yaw apart (about the 1 cm : 1 deg ratio of the nominal
+    speed), so neither translation nor rotation dominates for long."""
     inner = region.mean(axis=1)[:, None] + 0.9 * (region - region.mean(axis=1)[:, None])
-    pos = rng.uniform(inner[:, 0], inner[:, 1], size=(n_knots, 3))
-    yaw = rng.uniform(0, 2 * np.pi) + np.cumsum(rng.normal(0.0, np.radians(45.0), n_knots))
+    pos = np.empty((n_knots, 3))
+    pos[0] = rng.uniform(inner[:, 0], inner[:, 1])
+    for k in range(1, n_knots):
+        d = rng.normal(size=3) * [1.0, 1.0, 0.5]
+        step = rng.uniform(0.15, 0.45) * d / np.linalg.norm(d)
+        nxt = pos[k - 1] + step
+        nxt = np.where(nxt > inner[:, 1], 2 * inner[:, 1] - nxt, nxt)  # reflect at the region's faces
+        nxt = np.where(nxt < inner[:, 0], 2 * inner[:, 0] - nxt, nxt)
+        pos[k] = np.clip(nxt, inner[:, 0], inner[:, 1])
+    turns = np.radians(rng.uniform(15.0, 45.0, n_knots)) * rng.choice([-1.0, 1.0], n_knots)
+    yaw = rng.uniform(0, 2 * np.pi) + np.cumsum(turns)
     pitch = np.radians(rng.uniform(-35.0, 5.0, n_knots))
     roll = np.radians(rng.normal(0.0, 4.0, n_knots))
     knots = np.arange(n_knots, dtype=np.float64)
@@ -171,10 +184,13 @@ def make_trajectory(kind: str, n_frames: int, scene_bound: np.ndarray, seed: int
     if trans_step <= 0 or rot_step_deg <= 0:
         raise InputError("trajectory steps must be positive")
     region = camera_region(scene_bound)
-    rng = np.random.default_rng([int(seed), TRAJECTORIES.index(kind)])
     steps = (trans_step, rot_step_deg)
+
+    def rng() -> np.random.Generator:  # a fresh, identical stream for every candidate curve
+        return np.random.default_rng([int(seed), TRAJECTORIES.index(kind)])
+
     if kind in ("circle", "helix"):
-        curve = _circle(region, rng, helix=kind == "helix")
+        curve = _circle(region, rng(), helix=kind == "helix")
         s_max = 2 * np.pi
         while (total := _metric(curve, np.linspace(0.0, s_max, 2000), *steps)[-1]) < n_frames:
             s_max *= 1.2 * n_frames / total
@@ -182,24 +198,22 @@ def make_trajectory(kind: str, n_frames: int, scene_bound: np.ndarray, seed: int
     if kind == "random_walk":
         n_knots = 4
         while True:
-            curve = _random_walk(region, np.random.default_rng([int(seed), 2]), n_knots)
+            curve = _random_walk(region, rng(), n_knots)
             total = _metric(curve, np.linspace(0.0, n_knots - 1, 200 * n_knots), *steps)[-1]
             if total >= n_frames - 1:
                 return _retime(curve, n_knots - 1, n_frames, 1.0, *steps, dense=max(2000, 20 * n_frames))
             n_knots = int(np.ceil(n_knots * 1.5 * (n_frames - 1) / max(total, 1.0))) + 1
     # loop: choose the lap size so that one lap takes n_frames steps (3 fixed-point updates: nearly linear)
     scale, laps = 1.0, 1
-    full = _metric(_loop(region, np.random.default_rng([int(seed), 3]), 1.0),
-                   np.linspace(0.0, 2 * np.pi, 1441), *steps)[-1]
+    full = _metric(_loop(region, rng(), 1.0), np.linspace(0.0, 2 * np.pi, 1441), *steps)[-1]
     if full >= n_frames:
         scale = n_frames / full
         for _ in range(3):
-            lap = _metric(_loop(region, np.random.default_rng([int(seed), 3]), scale),
-                          np.linspace(0.0, 2 * np.pi, 1441), *steps)[-1]
+            lap = _metric(_loop(region, rng(), scale), np.linspace(0.0, 2 * np.pi, 1441), *steps)[-1]
             scale *= n_frames / lap
     else:
         laps = max(1, int(round(n_frames / full)))
-    curve = _loop(region, np.random.default_rng([int(seed), 3]), scale)
+    curve = _loop(region, rng(), scale)
     dense = max(2000, 20 * n_frames)
     total = _metric(curve, np.linspace(0.0, 2 * np.pi * laps, dense), *steps)[-1]
     return _retime(curve, 2 * np.pi * laps, n_frames, total / n_frames, *steps, dense=dense)

@@ -1,0 +1,214 @@
+"""Frame-to-frame (or frame-to-keyframe) RGB-D odometry with a constant-velocity prior and graceful failure.
+
+Per frame (:meth:`Odometry.track`):
+
+1. predict ``T_w_pred = T_w_last @ inv(T_w_prev) @ T_w_last`` (constant velocity);
+2. register the frame to the reference frame from ``inv(T_w_ref) @ T_w_pred`` (:func:`register_rgbd`);
+3. gate: registration gates (fitness, inlier RMSE, correction) and the per-frame motion;
+4. on failure (frame without depth, featureless frame, Open3D error, failed gate) keep the prediction, with
+   weak information and the reason logged;
+5. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
+   reference changes when the camera has moved far from it or the fitness drops).
+
+The pipeline reports refined poses back with :meth:`Odometry.correct`, so the next prediction starts from them.
+Only the reference frame's images (and their cached preprocessing) are kept.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from lrslam.camera import check_intrinsics
+from lrslam.errors import InputError
+from lrslam.frontend.registration import (OdometryConfig, fallback_information, frame_problem,
+                                          register_rgbd)
+from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
+from lrslam.geometry import inv, is_valid_pose, pose_error
+
+__all__ = ["OdometryConfig", "OdometryResult", "Odometry"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryResult:
+    """Odometry output for one frame.
+
+    Attributes:
+        frame_index: the frame's index.
+        T_w_c: (4, 4) camera pose in the world (the constant-velocity prediction when not ok).
+        T_ref_c: (4, 4) pose of the camera in the reference frame it was registered to (``inv(T_w_ref) @ T_w_c``).
+        ref_index: index of that reference frame (the frame itself for the first frame).
+        information: (6, 6) information of ``T_ref_c`` (right perturbation ``T_ref_c exp(xi)``,
+            ``xi = [rotation (rad), translation (m)]``, ready for ``BetweenFactor(ref, c)``); weak when not ok.
+        ok: the registration succeeded and passed every gate.
+        fitness: inlier fraction (0..1).
+        inlier_rmse: metres (inf when unknown).
+        reason: why not ok, or a note ("first frame"); "" otherwise.
+    """
+
+    frame_index: int
+    T_w_c: np.ndarray
+    T_ref_c: np.ndarray
+    ref_index: int
+    information: np.ndarray
+    ok: bool
+    fitness: float
+    inlier_rmse: float
+    reason: str = ""
+
+
+class Odometry:
+    """Tracks a sequence of RGB-D frames from one camera (intrinsics ``K`` (3, 3), images ``height`` x ``width``)."""
+
+    def __init__(self, cfg: OdometryConfig, K: np.ndarray, height: int, width: int):
+        try:
+            self.K = check_intrinsics(K, width, height)
+        except ValueError as e:
+            raise InputError(f"odometry: {e}") from None
+        self.cfg = cfg
+        self.height, self.width = int(height), int(width)
+        self.reset()
+
+    # -- state -----------------------------------------------------------------------------------------------
+    def reset(self, T_w_c0: np.ndarray | None = None) -> None:
+        """Forget every frame; the next tracked frame gets pose ``T_w_c0`` (4x4, default identity)."""
+        T0 = np.eye(4) if T_w_c0 is None else np.asarray(T_w_c0, dtype=np.float64)
+        if not is_valid_pose(T0):
+            raise InputError("odometry: initial pose must be a finite 4x4 rigid transform")
+        self._T_w_c0 = T0
+        self._ref: RGBDView | None = None
+        self._ref_index: int | None = None
+        self._T_w_ref = T0.copy()
+        self._last_index: int | None = None
+        self._T_w_last = T0.copy()
+        self._T_w_prev = T0.copy()  # pose before the last one: velocity = inv(prev) @ last
+        self._failures = 0
+
+    @property
+    def reference_index(self) -> int | None:
+        """Index of the current reference frame (None before the first valid frame)."""
+        return self._ref_index
+
+    @property
+    def last_pose(self) -> np.ndarray:
+        """``T_w_c`` of the last tracked frame (or the initial pose)."""
+        return self._T_w_last.copy()
+
+    def predict(self) -> np.ndarray:
+        """Constant-velocity prediction of the next frame's ``T_w_c``."""
+        return self._T_w_last @ inv(self._T_w_prev) @ self._T_w_last
+
+    def correct(self, frame_index: int, T_w_c: np.ndarray) -> None:
+        """Replace the pose of a frame the odometry still uses (the last frame and/or the reference frame) with
+        a refined one (e.g. from the field tracker or the pose graph). Other frames are ignored with a log."""
+        T = np.asarray(T_w_c, dtype=np.float64)
+        if not is_valid_pose(T):
+            raise InputError(f"odometry.correct: pose of frame {frame_index} is not a finite rigid transform")
+        used = False
+        if frame_index == self._last_index:
+            self._T_w_last = T.copy()
+            used = True
+        if frame_index == self._ref_index:
+            self._T_w_ref = T.copy()
+            used = True
+        if not used:
+            log.info("odometry.correct: frame %d is neither the last frame (%s) nor the reference (%s): ignored",
+                     frame_index, self._last_index, self._ref_index)
+
+    # -- tracking --------------------------------------------------------------------------------------------
+    def track(self, frame: FrameLike) -> OdometryResult:
+        """Estimate the pose of ``frame`` (needs ``index``, ``rgb``, ``depth``, ``K``; see module docstring)."""
+        index = int(frame.index)
+        view = self._view(frame)
+        problem = frame_problem(view, self.cfg)
+        if self._last_index is None:
+            return self._first(index, view, problem)
+
+        # 1. Constant-velocity prediction.
+        T_w_pred = self.predict()
+        if self._ref is None:
+            reg = None
+            reason = problem or "no reference frame yet"
+        else:
+            # 2. Register to the reference.
+            reg = register_rgbd(view, self._ref, inv(self._T_w_ref) @ T_w_pred, self.cfg)
+            reason = reg.reason
+        T_w_c = T_w_pred
+        if reg is not None and reg.ok:
+            # 3. Per-frame motion gate.
+            T_w_c = self._T_w_ref @ reg.T_tgt_src
+            d_t, d_r = pose_error(self._T_w_last, T_w_c)
+            if d_t > self.cfg.max_translation or d_r > self.cfg.max_rotation:
+                reason = f"motion since the last frame too large ({d_t:.3f} m, {d_r:.1f} deg)"
+                T_w_c = T_w_pred
+        ok = reg is not None and reg.ok and not reason
+        ref_index = self._ref_index if self._ref_index is not None else index
+        T_ref_c = inv(self._T_w_ref) @ T_w_c if self._ref is not None else np.eye(4)
+        if ok:
+            info = reg.information
+        else:
+            # 4. Fallback to the prediction.
+            info = fallback_information(self.cfg)
+            log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
+        result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
+                                reg.fitness if reg is not None else 0.0,
+                                reg.inlier_rmse if reg is not None else float("inf"), reason)
+
+        # 5. Update velocity and reference.
+        self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, T_w_c, index
+        self._update_reference(index, view, problem, result)
+        return result
+
+    def _first(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
+        self._last_index = index
+        if problem is None:
+            self._set_reference(index, view, self._T_w_c0)
+            reason, ok = "first frame", True
+        else:
+            reason, ok = f"first frame: {problem}", False
+            log.info("frame %d: %s", index, reason)
+        return OdometryResult(index, self._T_w_c0.copy(), np.eye(4), index, fallback_information(self.cfg), ok,
+                              1.0 if ok else 0.0, 0.0 if ok else float("inf"), reason)
+
+    def _update_reference(self, index: int, view: RGBDView, problem: str | None, res: OdometryResult) -> None:
+        if problem is not None:
+            return  # never keep an unusable frame as reference
+        if self._ref is None:
+            self._set_reference(index, view, res.T_w_c)
+            return
+        if not res.ok:
+            self._failures += 1
+            if self._failures > self.cfg.max_consecutive_failures:
+                log.warning("frame %d: %d consecutive odometry failures; re-anchoring the reference at the "
+                            "predicted pose", index, self._failures)
+                self._set_reference(index, view, res.T_w_c)
+            return
+        self._failures = 0
+        if self.cfg.mode == "frame":
+            self._set_reference(index, view, res.T_w_c)
+            return
+        d_t, d_r = pose_error(self._T_w_ref, res.T_w_c)
+        if (d_t > self.cfg.reference_max_translation or d_r > self.cfg.reference_max_rotation
+                or res.fitness < self.cfg.reference_min_fitness):
+            self._set_reference(index, view, res.T_w_c)
+
+    def _set_reference(self, index: int, view: RGBDView, T_w_c: np.ndarray) -> None:
+        self._ref, self._ref_index, self._T_w_ref = view, index, np.asarray(T_w_c, dtype=np.float64).copy()
+        self._failures = 0
+
+    def _view(self, frame: FrameLike) -> RGBDView:
+        try:
+            view = as_view(frame)
+        except ValueError as e:
+            raise InputError(f"odometry: frame {getattr(frame, 'index', '?')}: {e}") from None
+        if view.depth.shape != (self.height, self.width):
+            raise InputError(f"odometry: frame {getattr(frame, 'index', '?')} is {view.width}x{view.height}, "
+                             f"expected {self.width}x{self.height}")
+        if not np.allclose(view.K, self.K):
+            raise InputError(f"odometry: frame {getattr(frame, 'index', '?')} has different intrinsics")
+        # Keep only the images (a Frame also carries ground truth and other data the odometry must not hold).
+        return RGBDView(view.rgb, view.depth, view.K)
