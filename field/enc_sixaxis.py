@@ -1,5 +1,6 @@
 """One level of the Six-axis encoding (paper Eq. sixaxis / clr):
-``f(p) = sum_i f_{x_y}^(i)(x) f_{y_x}^(i)(y) + sum_i f_{y_z}^(i)(y) f_{z_y}^(i)(z) + sum_i f_{z_x}^(i)(z) f_{x_z}^(i)(x)``.
+``f(p) = sum_i f_{x_y}^(i)(x) f_{y_x}^(i)(y) + sum_i f_{y_z}^(i)(y) f_{z_y}^(i)(z)
+       + sum_i f_{z_x}^(i)(z) f_{x_z}^(i)(x)``.
 
 Speed (DESIGN.md): evaluating the k lines point by point costs O(k C) per sample and is ~40x slower on CPU than
 materialising each rank-k plane ``P_ab = sum_i f_{a_b}^(i) (outer) f_{b_a}^(i)`` (O(n^2 C), independent of the
@@ -26,6 +27,13 @@ SAEvaluation = Literal["materialise", "direct"]
 _PLANES = ((0, 1, "x_y", "y_x"), (1, 2, "y_z", "z_y"), (2, 0, "z_x", "x_z"))
 
 
+def _outer_sum(la: torch.Tensor, lb: torch.Tensor) -> torch.Tensor:
+    """``P[a, b, c] = sum_k la[a, k, c] * lb[b, k, c]`` as one batched matmul over channels -> (n_a, n_b, C),
+    row-major so that bilinear lookups gather contiguous C-vectors."""
+    P = torch.bmm(la.permute(2, 0, 1), lb.permute(2, 1, 0))  # (C, n_a, n_b)
+    return P.permute(1, 2, 0).contiguous()
+
+
 class SixAxisLevel(nn.Module):
     """Rank-``k`` Six-axis decomposition of one resolution level.
 
@@ -48,10 +56,11 @@ class SixAxisLevel(nn.Module):
         self.caching = False
 
     def planes(self) -> list[torch.Tensor]:
-        """The three materialised planes ``P_xy (nx, ny, C)``, ``P_yz (ny, nz, C)``, ``P_zx (nz, nx, C)``."""
+        """The three materialised planes ``P_xy (nx, ny, C)``, ``P_yz (ny, nz, C)``, ``P_zx (nz, nx, C)``
+        (``einsum('akc,bkc->abc')``, contiguous)."""
         if self.caching and self._cache is not None:
             return self._cache
-        out = [torch.einsum("akc,bkc->abc", getattr(self, n_ab), getattr(self, n_ba)) for _, _, n_ab, n_ba in _PLANES]
+        out = [_outer_sum(getattr(self, n_ab), getattr(self, n_ba)) for _, _, n_ab, n_ba in _PLANES]
         if self.caching:
             self._cache = out
         return out

@@ -7,9 +7,11 @@ padding), exactly like ESLAM's ``F.grid_sample(..., align_corners=True, padding_
 Layout: lines are ``(n, D)`` and planes ``(n_a, n_b, C)`` with the feature axis last, so a lookup gathers
 contiguous rows. Two samplers with identical values:
 
-- ``"gather"``: ``F.embedding_bag`` over the 2 (line) or 4 (plane) neighbouring rows with the interpolation
-  weights as per-sample weights — one fused kernel forward and backward; fastest on CPU in our measurements
-  (benchmarks/field_speed.py).
+- ``"gather"``: a weighted sum of the 2 (line) or 4 (plane) neighbouring rows, forward with one fused
+  ``F.embedding_bag`` (interpolation weights as per-sample weights), backward hand-written: ``index_add_`` per
+  corner for the features and, for the coordinates, two more fused ``embedding_bag`` calls with the weights'
+  derivatives. No (N, corners, C) temporaries, unlike PyTorch's own sort-based ``embedding_bag`` backward.
+- ``"ebag"``: ``F.embedding_bag`` with PyTorch's autograd (reference; planes only, lines always use gather).
 - ``"grid_sample"``: ``F.grid_sample`` on the plane viewed as ``(1, C, n_a, n_b)``.
 
 Gradients flow to the features and to the coordinates (through the interpolation weights), never through the
@@ -25,12 +27,69 @@ import torch.nn.functional as F
 
 __all__ = ["Sampler", "resolve_sampler", "cell_and_fraction", "sample_lines", "sample_plane"]
 
-Sampler = Literal["auto", "gather", "grid_sample"]
+Sampler = Literal["auto", "gather", "ebag", "grid_sample"]
 
 
 def resolve_sampler(sampler: Sampler, device: torch.device | str) -> str:
     """``"auto"`` -> ``"gather"`` (measured fastest on CPU; also used on CUDA unless set explicitly)."""
     return "gather" if sampler == "auto" else sampler
+
+
+class _GatherLerp(torch.autograd.Function):
+    """Linear interpolation of table rows: ``out = (1 - t) table[i0] + t table[i0 + 1]``."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, i0: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        idx = torch.stack([i0, i0 + 1], dim=-1)
+        w = torch.stack([1.0 - t, t], dim=-1)
+        ctx.save_for_backward(table, idx, w)
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        table, idx, w = ctx.saved_tensors
+        g_table = g_t = None
+        if ctx.needs_input_grad[0]:
+            g_table = torch.zeros_like(table)
+            for j in range(2):
+                g_table.index_add_(0, idx[:, j], grad * w[:, j:j + 1])
+        if ctx.needs_input_grad[2]:
+            diff = F.embedding_bag(idx, table, per_sample_weights=_LERP_DT.to(w).expand_as(w).contiguous(),
+                                   mode="sum")
+            g_t = (diff * grad).sum(-1)
+        return g_table, None, g_t
+
+
+class _GatherBilerp(torch.autograd.Function):
+    """Bilinear interpolation of a row-major plane table (n_a * n_b, C) at cells ``base = a0 * n_b + b0``."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, base: torch.Tensor, nb: int, ta: torch.Tensor, tb: torch.Tensor):
+        idx = torch.stack([base, base + 1, base + nb, base + nb + 1], dim=-1)
+        sa, sb = 1.0 - ta, 1.0 - tb
+        w = torch.stack([sa * sb, sa * tb, ta * sb, ta * tb], dim=-1)
+        ctx.save_for_backward(table, idx, ta, tb, w)
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        table, idx, ta, tb, w = ctx.saved_tensors
+        g_table = g_ta = g_tb = None
+        if ctx.needs_input_grad[0]:
+            g_table = torch.zeros_like(table)
+            for j in range(4):
+                g_table.index_add_(0, idx[:, j], grad * w[:, j:j + 1])
+        sa, sb = 1.0 - ta, 1.0 - tb
+        if ctx.needs_input_grad[3]:  # d out / d ta = (1-tb)(P10 - P00) + tb (P11 - P01)
+            d = F.embedding_bag(idx, table, per_sample_weights=torch.stack([-sb, -tb, sb, tb], -1), mode="sum")
+            g_ta = (d * grad).sum(-1)
+        if ctx.needs_input_grad[4]:  # d out / d tb = (1-ta)(P01 - P00) + ta (P11 - P10)
+            d = F.embedding_bag(idx, table, per_sample_weights=torch.stack([-sa, sa, -ta, ta], -1), mode="sum")
+            g_tb = (d * grad).sum(-1)
+        return g_table, None, None, g_ta, g_tb
+
+
+_LERP_DT = torch.tensor([-1.0, 1.0])
 
 
 def cell_and_fraction(x01: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,11 +109,8 @@ def sample_lines(lines: torch.Tensor, x01: torch.Tensor) -> torch.Tensor:
     Returns:
         (N, D) interpolated features.
     """
-    n = lines.shape[0]
-    i0, t = cell_and_fraction(x01, n)
-    idx = torch.stack([i0, i0 + 1], dim=-1)
-    w = torch.stack([1.0 - t, t], dim=-1)
-    return F.embedding_bag(idx, lines, per_sample_weights=w, mode="sum")
+    i0, t = cell_and_fraction(x01, lines.shape[0])
+    return _GatherLerp.apply(lines, i0, t)
 
 
 def sample_plane(plane: torch.Tensor, xa01: torch.Tensor, xb01: torch.Tensor, sampler: str = "gather") -> torch.Tensor:
@@ -63,7 +119,7 @@ def sample_plane(plane: torch.Tensor, xa01: torch.Tensor, xb01: torch.Tensor, sa
     Args:
         plane: (n_a, n_b, C) features on the a-b grid.
         xa01, xb01: (N,) unit coordinates along a and b.
-        sampler: ``"gather"`` or ``"grid_sample"`` (same values).
+        sampler: ``"gather"``, ``"ebag"`` or ``"grid_sample"`` (same values).
     Returns:
         (N, C) interpolated features.
     """
@@ -73,12 +129,14 @@ def sample_plane(plane: torch.Tensor, xa01: torch.Tensor, xb01: torch.Tensor, sa
         out = F.grid_sample(plane.permute(2, 0, 1).unsqueeze(0), grid.view(1, -1, 1, 2), mode="bilinear",
                             padding_mode="border", align_corners=True)
         return out.view(c, -1).t()
-    if sampler != "gather":
-        raise ValueError(f"unknown sampler {sampler!r} (use 'gather' or 'grid_sample')")
+    if sampler not in ("gather", "ebag"):
+        raise ValueError(f"unknown sampler {sampler!r} (use 'gather', 'ebag' or 'grid_sample')")
     ia, ta = cell_and_fraction(xa01, na)
     ib, tb = cell_and_fraction(xb01, nb)
-    base = ia * nb + ib
-    idx = torch.stack([base, base + 1, base + nb, base + nb + 1], dim=-1)
-    sa, sb = 1.0 - ta, 1.0 - tb
-    w = torch.stack([sa * sb, sa * tb, ta * sb, ta * tb], dim=-1)
-    return F.embedding_bag(idx, plane.reshape(na * nb, c), per_sample_weights=w, mode="sum")
+    table = plane.reshape(na * nb, c)
+    if sampler == "ebag":  # reference: PyTorch's own embedding_bag autograd
+        base = ia * nb + ib
+        idx = torch.stack([base, base + 1, base + nb, base + nb + 1], dim=-1)
+        w = torch.stack([(1 - ta) * (1 - tb), (1 - ta) * tb, ta * (1 - tb), ta * tb], dim=-1)
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+    return _GatherBilerp.apply(table, ia * nb + ib, nb, ta, tb)

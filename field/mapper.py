@@ -178,7 +178,8 @@ class Mapper:
             opt.zero_grad(set_to_none=True)
             if not bool(torch.isfinite(loss)):
                 bad += 1
-                log.warning("mapping: non-finite loss at iteration %d (%d/%d), step skipped", it, bad, cfg.max_bad_steps)
+                log.warning("mapping: non-finite loss at iteration %d (%d/%d), step skipped", it, bad,
+                            cfg.max_bad_steps)
                 if bad >= cfg.max_bad_steps:
                     log.warning("mapping: aborted after %d non-finite losses; poses unchanged", bad)
                     return {"iters": done, "loss": float("nan"), "aborted": True}
@@ -186,6 +187,8 @@ class Mapper:
             loss.backward()
             opt.step()
             done, last_loss, last_terms = it + 1, loss.detach(), terms
+        if done == 0 and iters > 0:
+            log.warning("mapping: no usable rays (valid depth inside the scene bound) in %d iterations", iters)
         if pose is not None:
             if pose.finite():
                 for i, T in zip(opt_idx, pose.numpy()):

@@ -51,7 +51,8 @@ def depth_image(view: ViewPixels, height: int) -> np.ndarray:
     return img.reshape(height, view.width)
 
 
-def observed_box(views: list[ViewPixels], K: np.ndarray, height: int, margin: float, step: int = 4) -> np.ndarray | None:
+def observed_box(views: list[ViewPixels], K: np.ndarray, height: int, margin: float,
+                 step: int = 4) -> np.ndarray | None:
     """(3, 2) axis-aligned box (metres) around the back-projected depth of the views (every ``step``-th pixel),
     grown by ``margin``; None when no depth is valid."""
     pts = []
@@ -96,6 +97,25 @@ def seen_mask(points: np.ndarray, views: list[ViewPixels], K: np.ndarray, height
 
 
 @torch.no_grad()
+def _sdf_volume(model: SceneModel, axes: list[np.ndarray], chunk: int) -> np.ndarray:
+    """SDF on the grid ``axes`` (x, y, z node coordinates, metres) -> (nx, ny, nz) float64 volume, evaluated
+    slab by slab so the grid coordinates are never all in memory."""
+    nx, ny, nz = (len(a) for a in axes)
+    volume = np.empty((nx, ny, nz), dtype=np.float32)
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
+    step = max(1, chunk // len(yz))
+    dev = model.device
+    with model.frozen():
+        for i in range(0, nx, step):
+            xs = axes[0][i:i + step]
+            pts = np.concatenate([np.repeat(xs, len(yz))[:, None], np.tile(yz, (len(xs), 1))], 1)
+            vals = [model.sdf(torch.tensor(pts[s:s + chunk], dtype=torch.float32, device=dev)).cpu().numpy()
+                    for s in range(0, len(pts), chunk)]
+            volume[i:i + step] = np.concatenate(vals).reshape(len(xs), ny, nz)
+    return volume.astype(np.float64)
+
+
+@torch.no_grad()
 def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, height: int,
                  cfg: MeshConfig = MeshConfig(), resolution: float | None = None):
     """Marching cubes on the zero level set of the SDF.
@@ -122,13 +142,8 @@ def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, heig
     if min(len(a) for a in axes) < 2:
         log.warning("mesh: empty region %s", box.tolist())
         return trimesh.Trimesh()
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     # 2. SDF on the grid (frozen field, chunked).
-    dev = model.device
-    with model.frozen():
-        sdf = torch.cat([model.sdf(torch.tensor(grid[s:s + cfg.chunk], dtype=torch.float32, device=dev)).cpu()
-                         for s in range(0, len(grid), cfg.chunk)]).numpy()
-    volume = sdf.reshape([len(a) for a in axes]).astype(np.float64)
+    volume = _sdf_volume(model, axes, cfg.chunk)
     if not (volume.min() < 0 < volume.max()):
         log.warning("mesh: the SDF has no zero crossing in the region; empty mesh")
         return trimesh.Trimesh()
@@ -143,6 +158,7 @@ def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, heig
     mesh = trimesh.Trimesh(verts, faces, process=False)
     mesh.remove_unreferenced_vertices()
     # 5. Vertex colours from the colour decoder.
+    dev = model.device
     if len(mesh.vertices):
         with model.frozen():
             v = np.asarray(mesh.vertices)

@@ -64,22 +64,26 @@ class SceneModel(nn.Module):
 
     Args:
         bound: (3, 2) metres, world frame; grown to multiples of 0.24 m like ESLAM (``self.bound_np``).
-        cfg: the model config. device: torch device of the parameters.
+        cfg: the model config. device: torch device of the parameters. seed: when given, the initial features and
+            decoder weights come from this seed without touching torch's global RNG state.
 
     Units: points are world metres; ``sdf`` is the truncated SDF in truncation units (tanh output, 1 = T metres
     in front of the surface); colours are RGB in [0, 1].
     """
 
     def __init__(self, bound: np.ndarray, cfg: SceneModelConfig = SceneModelConfig(),
-                 device: torch.device | str = "cpu") -> None:
+                 device: torch.device | str = "cpu", seed: int | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.bound_np = grow_bound(bound)
         self.register_buffer("bound", torch.tensor(self.bound_np, dtype=torch.float32))
-        self.geometry = build_encoding(self.bound_np, cfg.geometry, device)
-        self.appearance = build_encoding(self.bound_np, cfg.appearance, device)
-        self.sdf_decoder = SDFDecoder(self.geometry.out_dim, cfg.hidden)
-        self.colour_decoder = ColourDecoder(self.appearance.out_dim, cfg.hidden)
+        with torch.random.fork_rng(devices=[], enabled=seed is not None):
+            if seed is not None:
+                torch.manual_seed(seed)
+            self.geometry = build_encoding(self.bound_np, cfg.geometry, device)
+            self.appearance = build_encoding(self.bound_np, cfg.appearance, device)
+            self.sdf_decoder = SDFDecoder(self.geometry.out_dim, cfg.hidden)
+            self.colour_decoder = ColourDecoder(self.appearance.out_dim, cfg.hidden)
         beta = torch.tensor(float(cfg.beta_init))
         if cfg.learnable_beta:
             self.beta = nn.Parameter(beta)

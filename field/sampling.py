@@ -61,9 +61,10 @@ def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n: int, generator: tor
     return bin_b + (u - cdf_b) / denom * (bin_a - bin_b)
 
 
-def hierarchical_depths(sdf_fn: Callable[[torch.Tensor], torch.Tensor], weights_fn: Callable[[torch.Tensor], torch.Tensor],
-                        origins: torch.Tensor, dirs: torch.Tensor, far: torch.Tensor, n_stratified: int,
-                        n_importance: int, jitter: bool, generator: torch.Generator) -> torch.Tensor:
+def hierarchical_depths(sdf_fn: Callable[[torch.Tensor], torch.Tensor],
+                        weights_fn: Callable[[torch.Tensor], torch.Tensor], origins: torch.Tensor,
+                        dirs: torch.Tensor, far: torch.Tensor, n_stratified: int, n_importance: int, jitter: bool,
+                        generator: torch.Generator) -> torch.Tensor:
     """Depths for rays without measured depth: a gradient-free uniform pass up to ``far`` (R,), then
     ``n_importance`` extra depths from its compositing weights -> (R, n_stratified + n_importance), sorted.
 

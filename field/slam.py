@@ -52,9 +52,8 @@ class FieldSLAMConfig(StrictModel):
         ``overrides`` replace top-level sections."""
         base = dict(
             render=RenderConfig(n_stratified=24, n_importance=8),
-            tracking=TrackerConfig(iters=20, n_rays=400, lr_rot=0.001, lr_trans=0.002, ignore_edge_h=4,
-                                   ignore_edge_w=4),
-            mapping=MapperConfig(iters=20, n_rays=1000, first_iters=150, window_size=8, remap_iters=20),
+            tracking=TrackerConfig(iters=12, n_rays=400, ignore_edge_h=4, ignore_edge_w=4),
+            mapping=MapperConfig(iters=15, n_rays=800, first_iters=100, window_size=8, remap_iters=20),
             mesh=MeshConfig(resolution=0.03),
             device="cpu",
         )
@@ -79,8 +78,7 @@ class FieldSLAM:
             raise InputError(str(e)) from None
         self.height, self.width = int(height), int(width)
         self.device = resolve_device(cfg.device)
-        torch.manual_seed(cfg.seed)
-        self.model = SceneModel(check_bound(bound), cfg.model, self.device)
+        self.model = SceneModel(check_bound(bound), cfg.model, self.device, seed=cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.mapper = Mapper(self.model, self.K, self.height, self.width, cfg.mapping, cfg.render, self.gen, cfg.seed)
         self.initialised = False
@@ -193,8 +191,8 @@ def run_field_slam(frames: Iterable[tuple[np.ndarray, np.ndarray]], cfg: FieldSL
     """Field-only SLAM over ``(rgb, depth)`` frames (ESLAM's loop, sequential).
 
     1. frame 0: initialise at ``T_w_c_first``; 2. seed ``T_{i-1} inv(T_{i-2}) T_{i-1}`` (constant velocity);
-    3. track; 4. every ``map_every`` frames map (a keyframe every ``keyframe_every`` frames); window poses
-    moved by mapping are written back.
+    3. track; 4. every ``map_every`` frames map (a keyframe every ``keyframe_every`` frames); keyframe poses
+    moved by joint mapping are written back into the trajectory (ESLAM keeps them only in its keyframe list).
 
     Returns:
         (poses (N, 4, 4) float64 T_w_c, the FieldSLAM object).

@@ -38,7 +38,8 @@ class TrackerConfig(StrictModel):
     lr_rot: Adam lr of the rotation parameters (quaternion units, ~ half radians; see :mod:`.poses`).
     lr_trans: Adam lr of the translation (metres). lr_final_factor: linear decay of both lrs to this fraction at
     the last iteration (1 = constant, ESLAM). max_translation / max_rotation_deg: a refined pose further than
-    this from the seed counts as divergence. min_rays: fewer usable rays in an iteration skip it.
+    this from the seed counts as divergence. bound_margin: metres the camera centre may lie outside the scene
+    bound (seed and result). min_rays: fewer usable rays in an iteration skip it.
     """
 
     iters: int = 8
@@ -54,6 +55,7 @@ class TrackerConfig(StrictModel):
     weights: LossWeights = TRACKING_WEIGHTS
     max_translation: float = 0.5
     max_rotation_deg: float = 30.0
+    bound_margin: float = 1.0
     min_rays: int = 16
 
 
@@ -99,7 +101,7 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
     rgb_t, depth_t = image_tensors(rgb, depth, h, w, dev)
     if not bool((depth_t > 0).any()):
         return _fail(T_seed, "no valid depth in the frame")
-    if not inside_bound(T_seed[:3, 3], model.bound_np):
+    if not inside_bound(T_seed[:3, 3], model.bound_np, cfg.bound_margin):
         return _fail(T_seed, f"seed camera centre {np.round(T_seed[:3, 3], 2).tolist()} is outside the scene bound")
 
     # 1. Pose parameters and optimiser (ESLAM: Adam with betas (0.5, 0.999)).
@@ -124,7 +126,7 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             # 3. Render, reject outlier rays, loss.
             r = render_rays(model, o, d, batch.depth, model.truncation, render, gen)
             err = (batch.depth - r.depth.detach()).abs()
-            inlier = err < cfg.outlier_factor * err.median()
+            inlier = err < cfg.outlier_factor * err.median().clamp(min=1e-6)
             loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, inlier, inlier)
             value = float(loss.detach())
             done = it + 1
@@ -145,7 +147,7 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
     dt, dr = pose_error(T_seed, T_best)
     if dt > cfg.max_translation or dr > cfg.max_rotation_deg or not is_valid_pose(T_best, tol=1e-3):
         return _fail(T_seed, f"diverged: {dt:.3f} m / {dr:.1f} deg from the seed", loss_first, done)
-    if not inside_bound(T_best[:3, 3], model.bound_np):
+    if not inside_bound(T_best[:3, 3], model.bound_np, cfg.bound_margin):
         return _fail(T_seed, "refined camera centre left the scene bound", loss_first, done)
     return TrackResult(T_best, True, loss_first, loss_best, done, "")
 

@@ -43,7 +43,9 @@ class OdometryResult:
         T_ref_c: (4, 4) pose of the camera in the reference frame it was registered to (``inv(T_w_ref) @ T_w_c``).
         ref_index: index of that reference frame (the frame itself for the first frame).
         information: (6, 6) information of ``T_ref_c`` (right perturbation ``T_ref_c exp(xi)``,
-            ``xi = [rotation (rad), translation (m)]``, ready for ``BetweenFactor(ref, c)``); weak when not ok.
+            ``xi = [rotation (rad), translation (m)]``, ready for ``BetweenFactor(ref, c)``); the weak
+            :func:`~lrslam.frontend.registration.fallback_information` when not ok and for the first frame
+            (nothing measured).
         ok: the registration succeeded and passed every gate.
         fitness: inlier fraction (0..1).
         inlier_rmse: metres (inf when unknown).
@@ -74,8 +76,10 @@ class Odometry:
         self.reset()
 
     # -- state -----------------------------------------------------------------------------------------------
-    def reset(self, T_w_c0: np.ndarray | None = None) -> None:
-        """Forget every frame; the next tracked frame gets pose ``T_w_c0`` (4x4, default identity)."""
+    def reset(self, T_w_c0: np.ndarray | None = None, frame: FrameLike | None = None) -> OdometryResult | None:
+        """Forget every frame; the next tracked frame gets pose ``T_w_c0`` (4x4, default identity). With
+        ``frame``, that first frame is tracked now (it becomes the reference when usable) and its result is
+        returned."""
         T0 = np.eye(4) if T_w_c0 is None else np.asarray(T_w_c0, dtype=np.float64)
         if not is_valid_pose(T0):
             raise InputError("odometry: initial pose must be a finite 4x4 rigid transform")
@@ -84,9 +88,11 @@ class Odometry:
         self._ref_index: int | None = None
         self._T_w_ref = T0.copy()
         self._last_index: int | None = None
+        self._last_view: RGBDView | None = None  # the last frame's images when usable (use_last_as_reference)
         self._T_w_last = T0.copy()
         self._T_w_prev = T0.copy()  # pose before the last one: velocity = inv(prev) @ last
         self._failures = 0
+        return self.track(frame) if frame is not None else None
 
     @property
     def reference_index(self) -> int | None:
@@ -101,6 +107,15 @@ class Odometry:
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next frame's ``T_w_c``."""
         return self._T_w_last @ inv(self._T_w_prev) @ self._T_w_last
+
+    def use_last_as_reference(self) -> bool:
+        """Make the last tracked frame the reference (e.g. when the keyframe policy picks it in
+        ``mode="keyframe"``). False (and a log line) when that frame was unusable (no depth, featureless)."""
+        if self._last_view is None or self._last_index is None:
+            log.info("odometry: last frame %s cannot be a reference", self._last_index)
+            return False
+        self._set_reference(self._last_index, self._last_view, self._T_w_last)
+        return True
 
     def correct(self, frame_index: int, T_w_c: np.ndarray) -> None:
         """Replace the pose of a frame the odometry still uses (the last frame and/or the reference frame) with
@@ -160,11 +175,13 @@ class Odometry:
 
         # 5. Update velocity and reference.
         self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, T_w_c, index
+        self._last_view = view if problem is None else None
         self._update_reference(index, view, problem, result)
         return result
 
     def _first(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
         self._last_index = index
+        self._last_view = view if problem is None else None
         if problem is None:
             self._set_reference(index, view, self._T_w_c0)
             reason, ok = "first frame", True

@@ -8,14 +8,17 @@ GTSAM's ``BetweenFactorPose3(tgt, src, T_tgt_src)`` expects.
 Methods (``OdometryConfig.method``):
 
 - ``rgbd``: ``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`` with ``Method.Hybrid`` (photometric +
-  geometric, image pyramid), followed by a short full-resolution point-to-plane polish when the geometry is
-  well conditioned. Open3D's photometric term associates each source pixel with the *nearest* target pixel,
-  which biases the result by up to half a pixel (measured 1-3.5 mm at 320x240 on a synthetic room, see the
-  tests); the point-to-plane polish removes that bias (0.1-0.3 mm).
+  geometric, image pyramid). Open3D's photometric term associates each source pixel with the *nearest* target
+  pixel, which biases the result by a fraction of a pixel: 1-3.4 mm at 320x240 on the synthetic room of the
+  tests. An optional full-resolution point-to-plane polish (``refine_iterations`` > 0, geometry well
+  conditioned) removes that bias on clean synthetic data (0.1-0.3 mm), but made the frame-to-frame ATE worse
+  on real data (TUM fr1/rpy, 120 frames at 320x240: 8.4 vs 4.8 cm; 7-Scenes redkitchen, 150 frames: 3.6 vs
+  2.4 cm, although its median per-frame error there was lower, 2.4 vs 3.7 mm), so it is off by default.
 - ``icp``: ``o3d.t.pipelines.registration.multi_scale_icp`` on back-projected, voxel-downsampled points,
   point-to-plane or coloured ICP.
 - ``kiss``: KISS-ICP's registration (point-to-point, robust kernel, voxel hash map of the target) on
-  back-projected points, coarse-to-fine over a fixed kernel schedule.
+  back-projected points, coarse-to-fine over ``kiss_levels`` voxel sizes (KISS-ICP searches correspondences
+  only in neighbouring voxels, so one fine scale cannot recover more than about a voxel of motion).
 
 Whatever the method, fitness, inlier RMSE and the information matrix come from one projective measure
 (:func:`lrslam.frontend.rgbd_view.assess_alignment`), and the same gates decide ``ok``.
@@ -24,6 +27,7 @@ Whatever the method, fitness, inlier RMSE and the information matrix come from o
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,13 +36,19 @@ from pydantic import Field, model_validator
 
 from lrslam.camera import backproject_depth
 from lrslam.config import StrictModel
+from lrslam.errors import InputError
 from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alignment, diagonal_information,
                                        normal_spread, valid_mask, view_problem)
-from lrslam.geometry import inv, is_valid_pose, pose_error
+from lrslam.geometry import is_valid_pose, pose_error
 
 __all__ = ["OdometryConfig", "RegistrationResult", "register_rgbd", "fallback_information", "frame_problem"]
 
 log = logging.getLogger(__name__)
+
+# The point-to-plane polish after hybrid RGB-D odometry only removes a sub-pixel bias: a larger move (m, deg)
+# means the geometry pulled somewhere the photometric term disagrees with, and the hybrid result is kept.
+_POLISH_MAX_TRANSLATION = 0.02
+_POLISH_MAX_ROTATION = 1.0
 
 
 class OdometryConfig(StrictModel):
@@ -57,7 +67,7 @@ class OdometryConfig(StrictModel):
     depth_outlier_trunc: float = Field(0.07, gt=0)
     depth_huber_delta: float = Field(0.05, gt=0)
     intensity_huber_delta: float = Field(0.1, gt=0)
-    refine_iterations: int = Field(10, ge=0)
+    refine_iterations: int = Field(0, ge=0)
     # icp / kiss: finest voxel size; icp scale i of n uses voxel_size * 2**(n-1-i) and a correspondence
     # distance of icp_distance_factor voxels.
     voxel_size: float = Field(0.02, gt=0)
@@ -107,7 +117,8 @@ class RegistrationResult:
     Attributes:
         T_tgt_src: (4, 4) pose of the source camera in the target camera (the initial guess when not ok).
         information: (6, 6) information of ``T_tgt_src`` (right perturbation, ``[rotation, translation]``;
-            see :func:`~lrslam.frontend.rgbd_view.assess_alignment`); :func:`fallback_information` when not ok.
+            see :func:`~lrslam.frontend.rgbd_view.assess_alignment`), with unit point noise
+            ``max(cfg.information_sigma, inlier_rmse)``; :func:`fallback_information` when not ok.
         fitness: inlier fraction of the source's valid pixels (0..1).
         inlier_rmse: metres (inf when unknown).
         ok: all gates passed.
@@ -142,12 +153,13 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
     Frames: anything with ``rgb (H, W, 3) uint8``, ``depth (H, W) float32`` metres and ``K (3, 3)``, or an
     :class:`RGBDView` (keeps preprocessing cached across calls). Never raises on bad image content: a frame
     without depth, a featureless frame, an Open3D error, a non-finite result or a failed gate give
-    ``ok=False`` with the initial guess, weak information and the reason (also logged at INFO).
+    ``ok=False`` with the initial guess, weak information and the reason (also logged at INFO). Malformed
+    arrays (wrong shapes) or a non-rigid ``init_T_tgt_src`` raise :class:`~lrslam.errors.InputError`.
     """
     src, tgt = as_view(source), as_view(target)
     init = np.asarray(init_T_tgt_src, dtype=np.float64)
     if not is_valid_pose(init):
-        raise ValueError("init_T_tgt_src must be a finite 4x4 rigid transform")
+        raise InputError("register_rgbd: init_T_tgt_src must be a finite 4x4 rigid transform")
 
     def fail(reason: str, fitness: float = 0.0, rmse: float = float("inf")) -> RegistrationResult:
         log.info("registration rejected: %s", reason)
@@ -164,7 +176,7 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
         T = {"rgbd": _register_o3d_rgbd, "icp": _register_o3d_icp, "kiss": _register_kiss}[cfg.method](
             src, tgt, init, cfg)
     except Exception as e:  # Open3D / KISS-ICP raise RuntimeError on degenerate systems, empty clouds, ...
-        return fail(f"{cfg.method} registration raised {type(e).__name__}: {str(e).strip().splitlines()[0]}")
+        return fail(f"{cfg.method} registration raised {type(e).__name__}: {_one_line(e)}")
     if not is_valid_pose(T, tol=1e-3):
         return fail(f"{cfg.method} registration returned a non-rigid or non-finite transform")
     T = _orthonormalise(T)
@@ -182,6 +194,13 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
                     q.inlier_rmse)
     info = q.information * (cfg.information_sigma / max(cfg.information_sigma, q.inlier_rmse)) ** 2
     return RegistrationResult(T, info, q.fitness, q.inlier_rmse, True, "")
+
+
+def _one_line(e: Exception) -> str:
+    """First line of an exception message without ANSI colours or Open3D's C++ location prefix."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e)).strip()
+    text = text.splitlines()[0] if text else ""
+    return re.split(r"\.(?:cpp|h):\d+: ", text)[-1]
 
 
 def _orthonormalise(T: np.ndarray) -> np.ndarray:
@@ -219,9 +238,8 @@ def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odom
     res = od.rgbd_odometry_multi_scale(_o3d_rgbd(src), _o3d_rgbd(tgt), K, o3d.core.Tensor(init), 1.0,
                                        cfg.depth_max, criteria, od.Method.Hybrid, params)
     T = res.transformation.numpy().astype(np.float64)
-    spread = src.cached(("spread", cfg.depth_min, cfg.depth_max),
-                        lambda: normal_spread(src, cfg.depth_min, cfg.depth_max))
-    if cfg.refine_iterations > 0 and spread >= cfg.min_normal_spread and is_valid_pose(T, tol=1e-3):
+    if (cfg.refine_iterations > 0 and is_valid_pose(T, tol=1e-3)
+            and normal_spread(src, cfg.depth_min, cfg.depth_max) >= cfg.min_normal_spread):
         # Full-resolution point-to-plane polish (removes the nearest-pixel bias of the photometric term).
         polish = od.rgbd_odometry_multi_scale(
             _o3d_rgbd(src), _o3d_rgbd(tgt), K, o3d.core.Tensor(T), 1.0, cfg.depth_max,
@@ -229,7 +247,7 @@ def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odom
             od.Method.PointToPlane, params)
         T_p = polish.transformation.numpy().astype(np.float64)
         d_t, d_r = pose_error(T, T_p)
-        if is_valid_pose(T_p, tol=1e-3) and d_t < cfg.depth_outlier_trunc and d_r < 2.0:
+        if is_valid_pose(T_p, tol=1e-3) and d_t < _POLISH_MAX_TRANSLATION and d_r < _POLISH_MAX_ROTATION:
             T = T_p
         else:
             log.debug("point-to-plane polish moved the hybrid result too far (%.3f m, %.2f deg): ignored", d_t, d_r)

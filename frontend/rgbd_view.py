@@ -19,10 +19,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from lrslam.camera import backproject_depth, project_points, transform_points
+from lrslam.errors import InputError
 
 __all__ = [
-    "FrameLike", "RGBDView", "AlignmentQuality", "as_view", "valid_mask", "view_problem", "normal_spread",
-    "intensity_std", "normal_map", "assess_alignment", "adjoint", "diagonal_information",
+    "FrameLike", "RGBDView", "AlignmentQuality", "strided_intrinsics", "block_intrinsics", "as_view", "valid_mask",
+    "view_problem", "normal_spread", "intensity_std", "normal_map", "assess_alignment", "adjoint",
+    "diagonal_information",
 ]
 
 
@@ -33,6 +35,23 @@ class FrameLike(Protocol):
     rgb: np.ndarray
     depth: np.ndarray
     K: np.ndarray
+
+
+def strided_intrinsics(K: np.ndarray, stride: int) -> np.ndarray:
+    """Intrinsics of ``image[::stride, ::stride]``: new pixel u' is old pixel ``stride * u'``, so
+    ``f' = f / stride`` and ``c' = c / stride``."""
+    K = np.asarray(K, dtype=np.float64).copy()
+    K[:2] /= stride
+    return K
+
+
+def block_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
+    """Intrinsics of an image averaged over ``factor`` x ``factor`` blocks: new pixel u' is centred on old
+    ``factor * u' + (factor - 1) / 2``, so ``f' = f / factor`` and ``c' = (c + 0.5) / factor - 0.5``."""
+    K = np.asarray(K, dtype=np.float64).copy()
+    K[:2, :2] /= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
+    return K
 
 
 @dataclass
@@ -66,36 +85,39 @@ class RGBDView:
             self.cache[key] = build()
         return self.cache[key]
 
-    def downsampled(self, factor: int) -> "RGBDView":
-        """A copy ``factor`` times smaller per side (area-averaged colour, nearest depth, intrinsics rescaled so
-        that pixel centres stay consistent: ``c' = (c + 0.5) / factor - 0.5``)."""
+    def downsampled(self, factor: int, max_depth_spread: float = 0.05) -> "RGBDView":
+        """A copy ``factor`` times smaller per side: colour and depth averaged over each ``factor`` x ``factor``
+        block (depth over its valid pixels; a block spanning a depth edge, valid depths more than
+        ``max_depth_spread`` m apart, keeps its central sample instead of mixing the two surfaces), intrinsics
+        rescaled about the block centres (:func:`block_intrinsics`)."""
         if factor <= 1:
             return RGBDView(self.rgb, self.depth, self.K)
         import cv2
 
         h, w = self.height // factor, self.width // factor
-        rgb = cv2.resize(self.rgb, (w, h), interpolation=cv2.INTER_AREA)
-        depth = np.ascontiguousarray(self.depth[factor // 2::factor, factor // 2::factor][:h, :w])
-        K = self.K.copy()
-        K[0, 0] /= factor
-        K[1, 1] /= factor
-        K[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
-        return RGBDView(rgb, depth, K)
+        rgb = cv2.resize(self.rgb[:h * factor, :w * factor], (w, h), interpolation=cv2.INTER_AREA)
+        blocks = self.depth[:h * factor, :w * factor].reshape(h, factor, w, factor).astype(np.float64)
+        valid = blocks > 0
+        n = valid.sum(axis=(1, 3))
+        mean = np.where(n > 0, blocks.sum(axis=(1, 3)) / np.maximum(n, 1), 0.0)
+        spread = np.where(valid, blocks, -np.inf).max(axis=(1, 3)) - np.where(valid, blocks, np.inf).min(axis=(1, 3))
+        centre = blocks[:, factor // 2, :, factor // 2]
+        depth = np.where((n > 0) & (spread > max_depth_spread), centre, mean).astype(np.float32)
+        return RGBDView(rgb, depth, block_intrinsics(self.K, factor))
 
 
 def as_view(frame: FrameLike | RGBDView) -> RGBDView:
     """Wrap a frame-like object (or return an :class:`RGBDView` as is). Shapes and dtypes are checked here, so
-    a wrong input fails with one line naming the problem (``ValueError``)."""
+    a wrong input fails with one line naming the problem (:class:`~lrslam.errors.InputError`)."""
     if isinstance(frame, RGBDView):
         return frame
     rgb, depth, K = np.asarray(frame.rgb), np.asarray(frame.depth), np.asarray(frame.K, dtype=np.float64)
     if depth.ndim != 2:
-        raise ValueError(f"depth must be (H, W) metres, got shape {depth.shape}")
+        raise InputError(f"depth must be (H, W) metres, got shape {depth.shape}")
     if rgb.shape != depth.shape + (3,):
-        raise ValueError(f"rgb must be (H, W, 3) matching depth {depth.shape}, got {rgb.shape}")
+        raise InputError(f"rgb must be (H, W, 3) matching depth {depth.shape}, got {rgb.shape}")
     if K.shape != (3, 3):
-        raise ValueError(f"K must be 3x3, got {K.shape}")
+        raise InputError(f"K must be 3x3, got {K.shape}")
     if rgb.dtype != np.uint8:
         rgb = np.clip(rgb * (255.0 if rgb.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
     depth = np.nan_to_num(depth.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
@@ -119,21 +141,23 @@ def normal_spread(view: RGBDView, depth_min: float, depth_max: float, stride: in
     """How well the surface normals constrain a translation: the smallest eigenvalue of ``mean(n n^T)`` over
     surface normals from finite differences of the back-projected depth (sub-sampled by ``stride``). 0 for a
     single plane (translation along it is unobservable to point-to-plane ICP), up to 1/3 for normals spread
-    evenly in all directions. ``max_jump`` (m) drops differences across depth discontinuities."""
-    d = view.depth[::stride, ::stride].astype(np.float64)
-    K = view.K.copy()
-    K[:2] /= stride
-    P = backproject_depth(d, K)
-    ok = (d >= depth_min) & (d <= depth_max)
-    dx, dy = P[:-1, 1:] - P[:-1, :-1], P[1:, :-1] - P[:-1, :-1]
-    good = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1]
-    good &= (np.abs(dx[..., 2]) < max_jump) & (np.abs(dy[..., 2]) < max_jump)
-    n = np.cross(dx[good], dy[good])
-    norm = np.linalg.norm(n, axis=1)
-    n = n[norm > 0] / norm[norm > 0, None]
-    if len(n) < 10:
-        return 0.0
-    return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
+    evenly in all directions. ``max_jump`` (m) drops differences across depth discontinuities. Cached."""
+
+    def build() -> float:
+        d = view.depth[::stride, ::stride].astype(np.float64)
+        P = backproject_depth(d, strided_intrinsics(view.K, stride))
+        ok = (d >= depth_min) & (d <= depth_max)
+        dx, dy = P[:-1, 1:] - P[:-1, :-1], P[1:, :-1] - P[:-1, :-1]
+        good = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1]
+        good &= (np.abs(dx[..., 2]) < max_jump) & (np.abs(dy[..., 2]) < max_jump)
+        n = np.cross(dx[good], dy[good])
+        norm = np.linalg.norm(n, axis=1)
+        n = n[norm > 0] / norm[norm > 0, None]
+        if len(n) < 10:
+            return 0.0
+        return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
+
+    return view.cached(("spread", depth_min, depth_max, stride, max_jump), build)
 
 
 def view_problem(view: RGBDView, *, depth_min: float, depth_max: float, min_valid_fraction: float,
@@ -233,11 +257,7 @@ def assess_alignment(source: RGBDView, target: RGBDView, T_tgt_src: np.ndarray, 
     n_valid = int(ok.sum())
     if n_valid == 0:
         return none
-    K = source.K.copy()
-    K[0, 2] = (K[0, 2] + 0.5) / stride - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) / stride - 0.5
-    K[:2, :2] /= stride
-    p = backproject_depth(d, K)[ok]
+    p = backproject_depth(d, strided_intrinsics(source.K, stride))[ok]
     q = transform_points(T_tgt_src, p)
     uv, z = project_points(q, target.K)
     with np.errstate(invalid="ignore"):

@@ -1,0 +1,148 @@
+"""Keyframe policy: a frame becomes a keyframe when the camera has moved or turned enough since the last keyframe,
+when it sees too little of the last keyframe's view, or every ``every_n`` frames (ESLAM-style fallback).
+
+:func:`view_overlap` is a pure function shared by the mapper (keyframe window selection) and the pose graph
+(loop candidates).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from lrslam.camera import backproject_depth, project_points, transform_points
+from lrslam.config import StrictModel
+from lrslam.errors import InputError
+from lrslam.frontend.rgbd_view import strided_intrinsics
+from lrslam.geometry import inv, is_valid_pose, pose_error
+
+__all__ = ["KeyframeConfig", "KeyframePolicy", "view_overlap"]
+
+log = logging.getLogger(__name__)
+
+
+class KeyframeConfig(StrictModel):
+    """When a frame becomes a keyframe (any criterion suffices). 0 disables a criterion."""
+
+    min_translation: float = Field(0.10, ge=0, description="m moved since the last keyframe")
+    min_rotation: float = Field(10.0, ge=0, description="deg turned since the last keyframe")
+    max_overlap: float = Field(0.80, ge=0, le=1, description="a frame whose view overlap with the last keyframe "
+                               "is below this fraction is a keyframe (needs depth and K)")
+    every_n: int = Field(0, ge=0, description="a keyframe at least every n frames (ESLAM uses 5 on Replica)")
+    overlap_stride: int = Field(8, gt=0, description="pixel sub-sampling of the overlap estimate")
+    occlusion_tolerance: float = Field(0.05, gt=0, description="m; with the keyframe depth, points farther "
+                                       "behind the keyframe surface than this count as not visible")
+
+
+def view_overlap(depth_a: np.ndarray, K_a: np.ndarray, T_w_a: np.ndarray, K_b: np.ndarray, T_w_b: np.ndarray,
+                 shape_b: tuple[int, int], depth_b: np.ndarray | None = None, stride: int = 8,
+                 depth_min: float = 1e-3, occlusion_tolerance: float = 0.05) -> float:
+    """Fraction of view a's back-projected points (valid depth, every ``stride``-th pixel) that land inside
+    view b's image ``shape_b = (H, W)`` in front of camera b.
+
+    ``depth_a (H_a, W_a)`` metres, ``K_a``/``K_b`` (3, 3), poses ``T_w_a``/``T_w_b`` (4, 4) camera-to-world.
+    With ``depth_b`` (same size as ``shape_b``), points hidden behind b's surface by more than
+    ``occlusion_tolerance`` (m) do not count. Returns 0.0 when a has no valid depth. Not symmetric.
+    """
+    d = np.asarray(depth_a, dtype=np.float64)[::stride, ::stride]
+    ok = d > depth_min
+    n = int(ok.sum())
+    if n == 0:
+        return 0.0
+    p_a = backproject_depth(d, strided_intrinsics(K_a, stride))[ok]
+    p_b = transform_points(inv(T_w_b) @ np.asarray(T_w_a, dtype=np.float64), p_a)
+    uv, z = project_points(p_b, np.asarray(K_b, dtype=np.float64))
+    h, w = shape_b
+    with np.errstate(invalid="ignore"):
+        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+    inside = (z > depth_min) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    if depth_b is not None and inside.any():
+        db = np.asarray(depth_b)[v[inside].astype(int), u[inside].astype(int)]
+        visible = (db <= depth_min) | (z[inside] <= db + occlusion_tolerance)
+        inside[np.flatnonzero(inside)[~visible]] = False
+    return float(inside.sum()) / n
+
+
+@dataclass
+class _Keyframe:
+    index: int
+    T_w_c: np.ndarray
+    depth: np.ndarray | None  # sub-sampled by the overlap stride (with K to match), for the overlap test
+    K: np.ndarray | None
+
+
+class KeyframePolicy:
+    """Decides keyframes. State: only the last keyframe (index, pose, and a sub-sampled depth map)."""
+
+    def __init__(self, cfg: KeyframeConfig):
+        self.cfg = cfg
+        self._last: _Keyframe | None = None
+
+    @property
+    def last_keyframe_index(self) -> int | None:
+        return None if self._last is None else self._last.index
+
+    def is_keyframe(self, frame_index: int, T_w_c: np.ndarray, depth: np.ndarray | None = None,
+                    K: np.ndarray | None = None, commit: bool = True) -> tuple[bool, str]:
+        """Whether frame ``frame_index`` at ``T_w_c`` (4x4) is a keyframe, and why (or why not).
+
+        ``depth (H, W)`` metres and ``K (3, 3)`` enable the overlap criterion. With ``commit`` (default) a
+        positive decision records the frame as the last keyframe (as :meth:`add_keyframe`).
+        """
+        T = self._pose(T_w_c, frame_index)
+        decision, reason = self._decide(frame_index, T, depth, K)
+        log.debug("frame %d: keyframe=%s (%s)", frame_index, decision, reason)
+        if decision and commit:
+            self.add_keyframe(frame_index, T, depth, K)
+        return decision, reason
+
+    def _decide(self, frame_index: int, T: np.ndarray, depth: np.ndarray | None,
+                K: np.ndarray | None) -> tuple[bool, str]:
+        c, last = self.cfg, self._last
+        if last is None:
+            return True, "first keyframe"
+        d_t, d_r = pose_error(last.T_w_c, T)
+        if c.min_translation > 0 and d_t >= c.min_translation:
+            return True, f"moved {d_t:.3f} m >= {c.min_translation} m"
+        if c.min_rotation > 0 and d_r >= c.min_rotation:
+            return True, f"turned {d_r:.1f} deg >= {c.min_rotation} deg"
+        if c.every_n > 0 and frame_index - last.index >= c.every_n:
+            return True, f"{frame_index - last.index} frames since keyframe {last.index}"
+        if c.max_overlap > 0 and depth is not None and K is not None and last.K is not None:
+            ov = self._overlap(depth, K, T)
+            if ov < c.max_overlap:
+                return True, f"overlap {ov:.2f} < {c.max_overlap}"
+            return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg, overlap {ov:.2f}"
+        return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg"
+
+    def _overlap(self, depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> float:
+        last, s = self._last, self.cfg.overlap_stride
+        # The last keyframe's depth is kept sub-sampled: project into that coarse image with its own K.
+        return view_overlap(depth, K, T, last.K, last.T_w_c, last.depth.shape, last.depth, stride=s,
+                            occlusion_tolerance=self.cfg.occlusion_tolerance)
+
+    def add_keyframe(self, frame_index: int, T_w_c: np.ndarray, depth: np.ndarray | None = None,
+                     K: np.ndarray | None = None) -> None:
+        """Record frame ``frame_index`` as the last keyframe (forced keyframes, or after ``commit=False``)."""
+        T = self._pose(T_w_c, frame_index)
+        if depth is not None and K is not None:
+            s = self.cfg.overlap_stride
+            d = np.ascontiguousarray(np.asarray(depth, dtype=np.float32)[::s, ::s])
+            self._last = _Keyframe(frame_index, T, d, strided_intrinsics(K, s))
+        else:
+            self._last = _Keyframe(frame_index, T, None, None)
+
+    def update_pose(self, frame_index: int, T_w_c: np.ndarray) -> None:
+        """Move the last keyframe (e.g. after pose-graph optimisation); other indices are ignored."""
+        if self._last is not None and self._last.index == frame_index:
+            self._last.T_w_c = self._pose(T_w_c, frame_index)
+
+    @staticmethod
+    def _pose(T_w_c: np.ndarray, frame_index: int) -> np.ndarray:
+        T = np.asarray(T_w_c, dtype=np.float64)
+        if not is_valid_pose(T):
+            raise InputError(f"keyframe policy: pose of frame {frame_index} is not a finite 4x4 rigid transform")
+        return T

@@ -1,0 +1,196 @@
+"""Loop closure over keyframes: propose earlier keyframes near the current one, verify by registration.
+
+:meth:`LoopCloser.detect` runs, for a new keyframe j:
+
+1. candidates: earlier keyframes i (not among the last ``exclude_last`` added) whose camera centre lies within
+   ``max_distance`` and optical axis within ``max_angle`` of j's, and whose view overlap with j
+   (:func:`~lrslam.frontend.keyframes.view_overlap`, current estimates) is at least ``min_overlap``;
+2. optional appearance check (OpenCV ORB matches);
+3. verification: :func:`~lrslam.frontend.registration.register_rgbd` of j to i from the predicted relative pose,
+   then strict fitness / RMSE / correction gates.
+
+Every rejection is logged with its reason (and kept in :attr:`LoopCloser.rejections` for the last call).
+Keyframes are stored as down-sampled copies (images only).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from lrslam.config import StrictModel
+from lrslam.errors import InputError
+from lrslam.frontend.keyframes import view_overlap
+from lrslam.frontend.registration import OdometryConfig, register_rgbd
+from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
+from lrslam.geometry import inv, is_valid_pose, pose_error
+
+__all__ = ["LoopClosureConfig", "LoopConstraint", "LoopCloser"]
+
+log = logging.getLogger(__name__)
+
+
+def _loop_registration() -> OdometryConfig:
+    return OdometryConfig(method="rgbd", iterations=(30, 20, 10), max_translation=0.5, max_rotation=30.0)
+
+
+class LoopClosureConfig(StrictModel):
+    """Loop candidate selection and verification. Distances in metres, angles in degrees."""
+
+    exclude_last: int = Field(5, ge=1, description="the most recent keyframes are never loop candidates")
+    max_distance: float = Field(1.0, gt=0, description="camera centre distance of a candidate")
+    max_angle: float = Field(45.0, gt=0, description="angle between optical axes of a candidate")
+    min_overlap: float = Field(0.3, ge=0, le=1, description="view overlap of the new keyframe into the candidate")
+    max_candidates: int = Field(3, ge=1, description="candidates verified per call, best overlap first")
+    downsample: int = Field(2, ge=1, description="keyframes are stored this many times smaller per side")
+    use_orb: bool = False
+    min_orb_matches: int = Field(30, ge=1)
+    # Strict gates applied after the registration's own.
+    min_fitness: float = Field(0.5, ge=0, le=1)
+    max_inlier_rmse: float = Field(0.015, gt=0)
+    registration: OdometryConfig = Field(default_factory=_loop_registration,
+                                         description="registration used for verification; its max_translation "
+                                         "/ max_rotation bound the drift a loop may correct")
+
+
+@dataclass(frozen=True)
+class LoopConstraint:
+    """A verified loop: ``T_i_j`` (4x4) is keyframe j's camera pose in keyframe i's camera (i earlier), with
+    ``information`` (6x6, right perturbation of ``T_i_j``, ``[rotation, translation]``), projective
+    ``fitness`` (0..1) and ``rmse`` (m)."""
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+    fitness: float
+    rmse: float
+
+
+@dataclass
+class _StoredKeyframe:
+    view: RGBDView
+    T_w_c: np.ndarray
+    orb: np.ndarray | None
+
+
+class LoopCloser:
+    """Keeps down-sampled keyframes and finds verified loops between a new keyframe and earlier ones."""
+
+    def __init__(self, cfg: LoopClosureConfig):
+        self.cfg = cfg
+        self._kfs: dict[int, _StoredKeyframe] = {}
+        self._order: list[int] = []
+        self.rejections: list[tuple[int, str]] = []
+
+    def __len__(self) -> int:
+        return len(self._kfs)
+
+    def add_keyframe(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> None:
+        """Store keyframe ``kf_id`` (images down-sampled by ``cfg.downsample``) at pose ``T_w_c`` (4x4)."""
+        if kf_id in self._kfs:
+            raise InputError(f"loop closure: keyframe {kf_id} added twice")
+        view = self._view(frame)
+        self._kfs[kf_id] = _StoredKeyframe(view, self._pose(T_w_c, kf_id), self._orb(view))
+        self._order.append(kf_id)
+
+    def update_poses(self, poses: dict[int, np.ndarray]) -> None:
+        """Move stored keyframes to new poses (e.g. after pose-graph optimisation); unknown ids are ignored."""
+        for kf_id, T in poses.items():
+            if kf_id in self._kfs:
+                self._kfs[kf_id].T_w_c = self._pose(T, kf_id)
+
+    def candidates(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> list[tuple[int, float]]:
+        """Earlier keyframes passing the pose-proximity and overlap tests: ``[(id, overlap)]``, best first."""
+        return self._candidates(kf_id, self._view(frame), self._pose(T_w_c, kf_id))
+
+    def _candidates(self, kf_id: int, view: RGBDView, T: np.ndarray) -> list[tuple[int, float]]:
+        c = self.cfg
+        recent = set(self._order[-c.exclude_last:]) | {kf_id}
+        found = []
+        for i in self._order:
+            if i in recent:
+                continue
+            kf = self._kfs[i]
+            d_t, _ = pose_error(kf.T_w_c, T)
+            cos = float(np.clip(kf.T_w_c[:3, 2] @ T[:3, 2], -1.0, 1.0))
+            if d_t > c.max_distance or np.degrees(np.arccos(cos)) > c.max_angle:
+                continue
+            ov = view_overlap(view.depth, view.K, T, kf.view.K, kf.T_w_c, kf.view.depth.shape, kf.view.depth,
+                              stride=2)
+            if ov >= c.min_overlap:
+                found.append((i, ov))
+            else:
+                log.debug("loop %d-%d: overlap %.2f < %.2f", i, kf_id, ov, c.min_overlap)
+        return sorted(found, key=lambda x: -x[1])
+
+    def detect(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> list[LoopConstraint]:
+        """Verified loops between keyframe ``kf_id`` (images ``frame``, current estimate ``T_w_c``) and earlier
+        stored keyframes. Does not store ``kf_id`` itself (call :meth:`add_keyframe`)."""
+        c = self.cfg
+        view = self._view(frame)
+        T = self._pose(T_w_c, kf_id)
+        self.rejections = []
+        out: list[LoopConstraint] = []
+        orb = self._orb(view)
+        for i, ov in self._candidates(kf_id, view, T)[:c.max_candidates]:
+            reason = self._verify_appearance(orb, self._kfs[i].orb)
+            if reason is None:
+                T_i_j_pred = inv(self._kfs[i].T_w_c) @ T
+                res = register_rgbd(view, self._kfs[i].view, T_i_j_pred, c.registration)
+                if not res.ok:
+                    reason = res.reason
+                elif res.fitness < c.min_fitness:
+                    reason = f"fitness {res.fitness:.3f} < {c.min_fitness}"
+                elif res.inlier_rmse > c.max_inlier_rmse:
+                    reason = f"inlier RMSE {res.inlier_rmse:.4f} m > {c.max_inlier_rmse}"
+                else:
+                    d_t, d_r = pose_error(T_i_j_pred, res.T_tgt_src)
+                    log.info("loop %d-%d accepted: overlap %.2f, fitness %.3f, rmse %.4f m, correction %.3f m "
+                             "%.2f deg", i, kf_id, ov, res.fitness, res.inlier_rmse, d_t, d_r)
+                    out.append(LoopConstraint(i, kf_id, res.T_tgt_src, res.information, res.fitness,
+                                              res.inlier_rmse))
+                    continue
+            log.info("loop %d-%d rejected: %s", i, kf_id, reason)
+            self.rejections.append((i, reason))
+        return out
+
+    # -- helpers ---------------------------------------------------------------------------------------------
+    def _view(self, frame: FrameLike | RGBDView) -> RGBDView:
+        try:
+            view = as_view(frame)
+        except ValueError as e:
+            raise InputError(f"loop closure: {e}") from None
+        return view.downsampled(self.cfg.downsample)
+
+    def _orb(self, view: RGBDView) -> np.ndarray | None:
+        if not self.cfg.use_orb:
+            return None
+        import cv2
+
+        grey = cv2.cvtColor(view.rgb, cv2.COLOR_RGB2GRAY)
+        _, desc = cv2.ORB_create(nfeatures=500).detectAndCompute(grey, None)
+        return desc
+
+    def _verify_appearance(self, a: np.ndarray | None, b: np.ndarray | None) -> str | None:
+        if not self.cfg.use_orb:
+            return None
+        if a is None or b is None:
+            return "no ORB features"
+        import cv2
+
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(a, b)
+        good = sum(1 for m in matches if m.distance < 50)
+        if good < self.cfg.min_orb_matches:
+            return f"{good} ORB matches < {self.cfg.min_orb_matches}"
+        return None
+
+    @staticmethod
+    def _pose(T_w_c: np.ndarray, kf_id: int) -> np.ndarray:
+        T = np.asarray(T_w_c, dtype=np.float64)
+        if not is_valid_pose(T):
+            raise InputError(f"loop closure: pose of keyframe {kf_id} is not a finite 4x4 rigid transform")
+        return T.copy()

@@ -1,0 +1,137 @@
+"""Field tracking: recovering a perturbed pose on a fitted field, and failure handling on bad input."""
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from field_fixtures import H_SMALL, K_SMALL, W_SMALL, box_room, scene_bound, trajectory
+from lrslam import geometry as g
+from lrslam.errors import InputError
+from lrslam.field.mapper import MapperConfig
+from lrslam.field.slam import FieldSLAM, FieldSLAMConfig
+from lrslam.field.tracker import TrackerConfig
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread: deterministic and robust on a shared 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene_frames():
+    scene = box_room()
+    poses = trajectory(60)
+    return poses, {i: scene.render(K_SMALL, H_SMALL, W_SMALL, poses[i]) for i in (0, 4, 6, 8)}
+
+
+@pytest.fixture(scope="module")
+def fitted(scene_frames, one_thread):
+    """A field fitted on frames 0, 4 and 8 with their true poses (frame 6 is left out for tracking)."""
+    poses, frames = scene_frames
+    slam = FieldSLAM(FieldSLAMConfig.cpu_small(), scene_bound(), K_SMALL, H_SMALL, W_SMALL)
+    slam.initialise(0, *frames[0], poses[0])
+    for i in (4, 8):
+        slam.map(i, *frames[i], poses[i], add_keyframe=True)  # < 5 keyframes: poses are not optimised yet
+    slam.remap(None, 20)
+    return slam
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,trials", [("quat", 2), ("lie", 1)])
+def test_tracking_recovers_3cm_3deg_perturbation(fitted, scene_frames, kind, trials):
+    poses, frames = scene_frames
+    np.testing.assert_allclose(fitted.keyframe_poses()[8], poses[8])  # fitting kept the given poses
+    cfg = TrackerConfig(iters=100, n_rays=500, lr_rot=0.005, lr_trans=0.01, lr_final_factor=0.02,
+                        parameterisation=kind, ignore_edge_h=4, ignore_edge_w=4)
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": cfg})
+    rng = np.random.default_rng(1 if kind == "quat" else 2)
+    for _ in range(trials):
+        d = rng.normal(size=3)
+        axis = rng.normal(size=3)
+        P = g.exp_se3(np.concatenate([axis / np.linalg.norm(axis) * np.radians(3.0), np.zeros(3)]))
+        P[:3, 3] = d / np.linalg.norm(d) * 0.03
+        seed = poses[6] @ P
+        res = fitted.track(*frames[6], seed)
+        dt, dr = g.pose_error(res.T_w_c, poses[6])
+        assert res.ok and res.reason == "" and res.iters == 100
+        assert res.loss_best < res.loss_first
+        assert dt < 0.005 and dr < 0.5, (dt, dr)
+
+
+@pytest.fixture()
+def rough(scene_frames, one_thread):
+    """A cheaply initialised field (for failure handling only)."""
+    poses, frames = scene_frames
+    cfg = FieldSLAMConfig.cpu_small(mapping=MapperConfig(first_iters=5, iters=3, n_rays=300),
+                                    tracking=TrackerConfig(iters=3, n_rays=200, ignore_edge_h=4, ignore_edge_w=4))
+    slam = FieldSLAM(cfg, scene_bound(), K_SMALL, H_SMALL, W_SMALL)
+    slam.initialise(0, *frames[0], poses[0])
+    return slam
+
+
+def test_bad_frames_keep_the_seed_and_never_crash(rough, scene_frames, caplog):
+    poses, frames = scene_frames
+    rgb, depth = frames[4]
+    caplog.set_level(logging.WARNING)
+    # 1. no valid depth (zeros, NaN, inf, negative)
+    for bad in (np.zeros_like(depth), np.full_like(depth, np.nan), np.full_like(depth, np.inf), -depth):
+        res = rough.track(rgb, bad, poses[4])
+        assert not res.ok and "no valid depth" in res.reason
+        np.testing.assert_array_equal(res.T_w_c, poses[4])
+        assert rough.map(4, rgb, bad, poses[4], add_keyframe=True) == {4: pytest.approx(poses[4])}
+    assert 4 not in rough.keyframe_poses()
+    # 2. a seed far outside the scene bound
+    far = poses[4].copy()
+    far[:3, 3] += [50.0, 0.0, 0.0]
+    res = rough.track(rgb, depth, far)
+    assert not res.ok and "outside the scene bound" in res.reason
+    np.testing.assert_array_equal(res.T_w_c, far)
+    out = rough.map(5, rgb, depth, far, add_keyframe=False)  # no usable rays: field and pose untouched
+    np.testing.assert_allclose(out[5], far)
+    # 3. a non-finite seed pose
+    res = rough.track(rgb, depth, np.full((4, 4), np.nan))
+    assert not res.ok
+    assert "outside the scene bound" in caplog.text and "no valid depth" in caplog.text
+
+
+def test_nan_loss_is_reported_and_mapping_skips_the_steps(rough, scene_frames, caplog):
+    poses, frames = scene_frames
+    rgb, depth = frames[4]
+    w = rough.model.sdf_decoder.net[0].weight
+    saved = w.detach().clone()
+    with torch.no_grad():
+        w[0, 0] = float("nan")
+    caplog.set_level(logging.WARNING)
+    res = rough.track(rgb, depth, poses[4])
+    assert not res.ok and "non-finite" in res.reason
+    np.testing.assert_array_equal(res.T_w_c, poses[4])
+    out = rough.map(4, rgb, depth, poses[4], add_keyframe=False)
+    np.testing.assert_allclose(out[4], poses[4])
+    assert "non-finite loss" in caplog.text
+    with torch.no_grad():
+        w.copy_(saved)
+    assert rough.track(rgb, depth, poses[4]).ok
+
+
+def test_facade_rejects_malformed_input(rough, scene_frames):
+    poses, frames = scene_frames
+    rgb, depth = frames[4]
+    with pytest.raises(InputError):
+        rough.track(rgb[:, :-1], depth, poses[4])
+    with pytest.raises(InputError):
+        rough.track(rgb.astype(np.float32), depth, poses[4])
+    with pytest.raises(InputError):
+        rough.map(4, rgb, depth, np.zeros((4, 4)), add_keyframe=True)
+    with pytest.raises(InputError):
+        FieldSLAM(FieldSLAMConfig.cpu_small(), scene_bound(), np.eye(3) * -1, H_SMALL, W_SMALL)
+    fresh = FieldSLAM(FieldSLAMConfig.cpu_small(), scene_bound(), K_SMALL, H_SMALL, W_SMALL)
+    with pytest.raises(RuntimeError):
+        fresh.track(rgb, depth, poses[4])
+    with pytest.raises(InputError):
+        fresh.initialise(0, rgb, np.zeros_like(depth), poses[0])

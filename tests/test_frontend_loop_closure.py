@@ -1,0 +1,96 @@
+"""Loop closure: candidates by pose and overlap, verification by registration, rejection of false candidates."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from frontend_fixtures import T_W_C_REF, look_at, make_frame, make_room
+from lrslam.errors import InputError
+from lrslam.frontend.loop_closure import LoopCloser, LoopClosureConfig
+from lrslam.geometry import exp_se3, inv, pose_error
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Keyframe 0 at the reference view, keyframes 1-5 looking elsewhere, keyframe 6 back near keyframe 0."""
+    room = make_room()
+    away = [look_at(np.array([x, -0.3, 0.0]), np.array([x + dx, 0.2, -2.0]))
+            for x, dx in ((-1.0, 0.5), (-0.5, 1.0), (0.0, 0.3), (0.5, -1.0), (1.0, -0.5))]
+    back = T_W_C_REF @ exp_se3(np.array([0.02, -0.05, 0.03, 0.08, -0.03, 0.05]))
+    poses = [T_W_C_REF] + away + [back]
+    return room, [make_frame(room, T, index=i) for i, T in enumerate(poses)]
+
+
+def _closer(frames, cfg=LoopClosureConfig()) -> LoopCloser:
+    closer = LoopCloser(cfg)
+    for f in frames[:6]:
+        closer.add_keyframe(f.index, f, f.T_w_c_gt)
+    return closer
+
+
+def test_revisit_is_detected_and_verified(scene, caplog):
+    caplog.set_level(logging.INFO, logger="lrslam.frontend.loop_closure")
+    _, frames = scene
+    closer = _closer(frames)
+    kf = frames[6]
+    drift = exp_se3(np.array([0.01, 0.03, -0.02, 0.04, -0.02, 0.03]))  # ~5.4 cm, 2.1 deg of accumulated drift
+    loops = closer.detect(6, kf, kf.T_w_c_gt @ drift)
+    assert [(c.i, c.j) for c in loops] == [(0, 6)]
+    c = loops[0]
+    d_t, d_r = pose_error(c.T_i_j, inv(frames[0].T_w_c_gt) @ kf.T_w_c_gt)
+    assert d_t < 0.003 and d_r < 0.3, (d_t, d_r)  # at half resolution (160x120)
+    assert c.fitness > 0.5 and c.rmse < 0.015
+    assert np.linalg.eigvalsh(c.information)[0] > 0
+    assert "loop 0-6 accepted" in caplog.text
+
+
+def test_false_candidate_is_rejected_with_a_reason(scene, caplog):
+    caplog.set_level(logging.INFO, logger="lrslam.frontend.loop_closure")
+    room, frames = scene
+    closer = _closer(frames)
+    # Drift claims this keyframe sits next to keyframe 0, but its images show another part of the room.
+    elsewhere = make_frame(room, look_at(np.array([0.3, 0.0, 0.5]), np.array([2.0, 0.3, 1.0])), index=6)
+    assert [i for i, _ in closer.candidates(6, elsewhere, frames[0].T_w_c_gt)] == [0]
+    loops = closer.detect(6, elsewhere, frames[0].T_w_c_gt)
+    assert loops == []
+    assert [i for i, _ in closer.rejections] == [0] and closer.rejections[0][1]
+    assert "loop 0-6 rejected" in caplog.text
+
+
+def test_recent_and_distant_keyframes_are_not_candidates(scene):
+    _, frames = scene
+    kf = frames[6]
+    # Everything recent: no candidate at all.
+    closer = _closer(frames, LoopClosureConfig(exclude_last=6))
+    assert closer.candidates(6, kf, kf.T_w_c_gt) == []
+    # Estimated far from keyframe 0: no candidate.
+    closer = _closer(frames)
+    far = kf.T_w_c_gt.copy()
+    far[:3, 3] += [3.0, 0.0, 0.0]
+    assert closer.candidates(6, kf, far) == []
+    assert [i for i, _ in closer.candidates(6, kf, kf.T_w_c_gt)] == [0]
+
+
+def test_poses_update_and_bad_input(scene):
+    _, frames = scene
+    closer = _closer(frames)
+    moved = frames[0].T_w_c_gt.copy()
+    moved[:3, 3] += [5.0, 0.0, 0.0]
+    closer.update_poses({0: moved, 99: np.eye(4)})  # unknown ids are ignored
+    assert closer.candidates(6, frames[6], frames[6].T_w_c_gt) == []
+    with pytest.raises(InputError, match="added twice"):
+        closer.add_keyframe(0, frames[0], np.eye(4))
+    with pytest.raises(InputError, match="rigid"):
+        closer.detect(7, frames[6], np.zeros((4, 4)))
+
+
+def test_orb_appearance_check(scene):
+    room, frames = scene
+    closer = _closer(frames, LoopClosureConfig(use_orb=True, min_orb_matches=30))
+    assert [(c.i, c.j) for c in closer.detect(6, frames[6], frames[6].T_w_c_gt)] == [(0, 6)]
+    elsewhere = make_frame(room, look_at(np.array([0.3, 0.0, 0.5]), np.array([2.0, 0.3, 1.0])), index=6)
+    assert closer.detect(6, elsewhere, frames[0].T_w_c_gt) == []
+    assert "ORB matches" in closer.rejections[0][1]  # rejected before any registration
