@@ -15,6 +15,7 @@ import numpy as np
 __all__ = [
     "OPENGL_FROM_OPENCV", "intrinsics_matrix", "backproject_depth", "pixel_directions", "project_points",
     "opengl_to_opencv_pose", "opencv_to_opengl_pose", "transform_points", "check_intrinsics",
+    "strided_intrinsics", "block_intrinsics",
 ]
 
 # Flips y and z: maps OpenCV camera coordinates to OpenGL camera coordinates (its own inverse).
@@ -78,3 +79,20 @@ def opengl_to_opencv_pose(T_w_c_gl: np.ndarray) -> np.ndarray:
 def opencv_to_opengl_pose(T_w_c_cv: np.ndarray) -> np.ndarray:
     """Camera-to-world pose with OpenCV camera axes -> the same camera with OpenGL axes."""
     return np.asarray(T_w_c_cv, dtype=np.float64) @ OPENGL_FROM_OPENCV
+
+
+def strided_intrinsics(K: np.ndarray, stride: int) -> np.ndarray:
+    """Intrinsics of ``image[::stride, ::stride]``: new pixel u' is old pixel ``stride * u'``, so
+    ``f' = f / stride`` and ``c' = c / stride``."""
+    K = np.asarray(K, dtype=np.float64).copy()
+    K[:2] /= stride
+    return K
+
+
+def block_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
+    """Intrinsics of an image averaged over ``factor`` x ``factor`` blocks: new pixel u' is centred on old
+    ``factor * u' + (factor - 1) / 2``, so ``f' = f / factor`` and ``c' = (c + 0.5) / factor - 0.5``."""
+    K = np.asarray(K, dtype=np.float64).copy()
+    K[:2, :2] /= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
+    return K

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
-from lrslam.camera import backproject_depth, project_points, transform_points
+from lrslam.camera import backproject_depth, project_points, strided_intrinsics, transform_points
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.frontend.rgbd_view import strided_intrinsics
 from lrslam.geometry import inv, is_valid_pose, pose_error
 
 __all__ = ["KeyframeConfig", "KeyframePolicy", "view_overlap"]

@@ -18,11 +18,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from lrslam.camera import backproject_depth, project_points, transform_points
+from lrslam.camera import backproject_depth, block_intrinsics, project_points, strided_intrinsics, transform_points
 from lrslam.errors import InputError
 
 __all__ = [
-    "FrameLike", "RGBDView", "AlignmentQuality", "strided_intrinsics", "block_intrinsics", "as_view", "valid_mask",
+    "FrameLike", "RGBDView", "AlignmentQuality", "as_view", "valid_mask",
     "view_problem", "normal_spread", "intensity_std", "normal_map", "assess_alignment", "adjoint",
     "diagonal_information",
 ]
@@ -35,23 +35,6 @@ class FrameLike(Protocol):
     rgb: np.ndarray
     depth: np.ndarray
     K: np.ndarray
-
-
-def strided_intrinsics(K: np.ndarray, stride: int) -> np.ndarray:
-    """Intrinsics of ``image[::stride, ::stride]``: new pixel u' is old pixel ``stride * u'``, so
-    ``f' = f / stride`` and ``c' = c / stride``."""
-    K = np.asarray(K, dtype=np.float64).copy()
-    K[:2] /= stride
-    return K
-
-
-def block_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
-    """Intrinsics of an image averaged over ``factor`` x ``factor`` blocks: new pixel u' is centred on old
-    ``factor * u' + (factor - 1) / 2``, so ``f' = f / factor`` and ``c' = (c + 0.5) / factor - 0.5``."""
-    K = np.asarray(K, dtype=np.float64).copy()
-    K[:2, :2] /= factor
-    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
-    return K
 
 
 @dataclass

@@ -31,7 +31,7 @@ class ScheduleConfig(StrictModel):
     """When mapping, keyframing and re-mapping happen (ESLAM: map every 4 frames, keyframe every 5)."""
 
     map_every: int = 4                 # field mode: map every N frames (fused mode maps on keyframes)
-    keyframe_every: int = 5            # field mode: every N-th frame becomes a keyframe (ESLAM rule)
+    keyframe_every: int = 4            # field mode: every N-th frame becomes a keyframe (ESLAM rule)
     remap_iters: int = 30              # fused: field re-optimisation iterations after the graph moved keyframes
     remap_min_shift_m: float = 0.005   # fused: re-map only when some keyframe moved more than this
     remap_keyframes: int = 20          # fused: at most this many (most-moved) keyframes take part in re-mapping

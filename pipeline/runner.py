@@ -204,6 +204,9 @@ class SlamRunner:
         shifts = {k: pose_error(kf_poses.get(k, T_w_c), T)[0] for k, T in new_poses.items()}
         moved = [k for k, s in sorted(shifts.items(), key=lambda kv: -kv[1]) if s > self.schedule.remap_min_shift_m]
         self.traj.update_keyframes(new_poses)
+        self.loop_closer.update_poses(new_poses)          # proximity search uses the corrected poses
+        for k, T_k in new_poses.items():
+            self.policy.update_pose(k, T_k)
         if moved and self.field is not None:
             with self.timer("remap"):
                 self.field.set_keyframe_poses(new_poses)
