@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from lrslam.errors import InputError
+from lrslam.logs import setup_console_logging
 
 __all__ = ["run", "params", "DEMO_SYNTH"]
 
@@ -58,7 +58,7 @@ def run(
     from lrslam.pipeline.config import build_config
     from lrslam.pipeline.run import run_sequence
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    setup_console_logging()
     if demo:
         config = config or "synthetic"
     ov = list(overrides or [])
@@ -137,7 +137,7 @@ def batch(
     from lrslam.pipeline.batch import comparison_table, run_batch
     from lrslam.pipeline.config import build_config
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    setup_console_logging()
     ov = list(overrides or []) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
     configs = {}
     for m in [x.strip() for x in modes.split(",") if x.strip()]:

@@ -80,6 +80,9 @@ def write_outputs(out_dir: Path, cfg, seq, runner, timestamps, poses, logs, time
     if cfg.output.mesh:
         try:
             mesh = _mesh(runner, seq, poses, cfg, timer)
+            if len(mesh.faces) == 0:
+                log.warning("the mesh is empty (nothing observed inside the bound?)")
+                metrics["mesh_error"] = "empty mesh"
             mesh.export(out_dir / "mesh.ply")
         except Exception as e:  # a failed mesh must not lose the trajectory and metrics
             log.error("mesh extraction failed: %s", e)

@@ -70,6 +70,17 @@ def _choose_bound(cfg: RunConfig, seq, first, T0) -> tuple[np.ndarray, str]:
     return b, src
 
 
+def _save_partial(out_dir: Path, seq, runner: SlamRunner) -> None:
+    """Write the poses tracked so far to ``trajectory_partial.txt`` (TUM format) after a failed run."""
+    try:
+        poses = runner.poses()
+        write_tum(out_dir / "trajectory_partial.txt", np.asarray(seq.timestamps, dtype=np.float64)[: len(poses)],
+                  poses)
+        log.error("run stopped after %d frames; poses so far in %s", len(poses), out_dir / "trajectory_partial.txt")
+    except Exception as e:  # the original error matters more
+        log.error("could not save the partial trajectory: %s", e)
+
+
 def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
@@ -100,13 +111,18 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
         logs = [runner.start(first, T0)]
         bar = tqdm(range(1, len(seq)), desc=f"lrslam {cfg.mode}", unit="frame", disable=not progress,
                    initial=1, total=len(seq))
-        for i in bar:
-            with timer("io"):
-                frame = seq[i]
-            logs.append(runner.step(frame))
-            if progress and i % 5 == 0:
-                bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
-        bar.close()
+        try:
+            for i in bar:
+                with timer("io"):
+                    frame = seq[i]
+                logs.append(runner.step(frame))
+                if progress and i % 5 == 0:
+                    bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
+        except BaseException:
+            _save_partial(out_dir, seq, runner)   # never lose what was tracked before a crash or Ctrl-C
+            raise
+        finally:
+            bar.close()
         wall = time.perf_counter() - t_start
         poses = runner.poses()
         timestamps = np.asarray(seq.timestamps, dtype=np.float64)[: len(poses)]

@@ -1,29 +1,49 @@
-"""Reference mesh for the frontend-only mode: Open3D scalable TSDF fusion of the frames at given poses."""
+"""Reference mesh for the frontend-only mode: TSDF fusion of the frames at given poses (Open3D tensor API,
+``VoxelBlockGrid``: hashed 16^3 voxel blocks, so memory follows the observed surface, not the bound).
+
+Open3D's legacy ``ScalableTSDFVolume`` returned empty meshes with open3d 0.20 pip wheels here (even for one
+frame of valid depth), which is why this uses the tensor API (test: the frontend run's mesh has faces).
+"""
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 
 __all__ = ["tsdf_mesh"]
 
+log = logging.getLogger(__name__)
 
-def tsdf_mesh(frames, poses: np.ndarray, voxel: float = 0.02, depth_max: float = 5.0, every: int = 1):
-    """Fuse ``frames`` (iterable of Frame) at ``poses`` (N, 4, 4) ``T_w_c`` into a TSDF and extract a
-    triangle mesh (trimesh.Trimesh with vertex colours). ``voxel`` metres; truncation = 4 voxels."""
+
+def tsdf_mesh(frames, poses: np.ndarray, voxel: float = 0.02, depth_max: float = 5.0, every: int = 1,
+              weight_threshold: float = 1.0, block_count: int = 40000):
+    """Fuse ``frames`` (iterable of Frame) at ``poses`` (N, 4, 4) ``T_w_c`` into a TSDF and extract a triangle
+    mesh (``trimesh.Trimesh`` with vertex colours, world frame, metres). ``voxel`` metres (truncation 4 voxels);
+    ``weight_threshold``: voxels seen fewer times are left out of the surface."""
     import open3d as o3d
+    import open3d.core as o3c
     import trimesh
 
-    vol = o3d.pipelines.integration.ScalableTSDFVolume(
-        voxel_length=voxel, sdf_trunc=4 * voxel, color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
+    vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
+                                        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+                                        attr_channels=((1), (1), (3)), voxel_size=voxel, block_resolution=16,
+                                        block_count=block_count)
+    n_fused = 0
     for i, frame in enumerate(frames):
-        if i % every or i >= len(poses) or frame.valid_depth_fraction() == 0:
+        if i % every or i >= len(poses) or frame.valid_depth_fraction() == 0 or not np.all(np.isfinite(poses[i])):
             continue
-        K = frame.K
-        intr = o3d.camera.PinholeCameraIntrinsic(frame.width, frame.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)), o3d.geometry.Image(frame.depth.astype(np.float32)),
-            depth_scale=1.0, depth_trunc=depth_max, convert_rgb_to_intensity=False)
-        vol.integrate(rgbd, intr, np.linalg.inv(poses[i]))
-    m = vol.extract_triangle_mesh()
+        depth = o3d.t.geometry.Image(np.ascontiguousarray(frame.depth, dtype=np.float32))
+        colour = o3d.t.geometry.Image(np.ascontiguousarray(frame.rgb, dtype=np.float32) / 255.0)
+        K = o3c.Tensor(np.asarray(frame.K, dtype=np.float64))
+        T_c_w = o3c.Tensor(np.linalg.inv(poses[i]))
+        blocks = vbg.compute_unique_block_coordinates(depth, K, T_c_w, 1.0, depth_max, trunc_voxel_multiplier=4.0)
+        vbg.integrate(blocks, depth, colour, K, T_c_w, 1.0, depth_max, trunc_voxel_multiplier=4.0)
+        n_fused += 1
+    if n_fused == 0:
+        log.warning("TSDF fusion: no frame with valid depth; empty mesh")
+        return trimesh.Trimesh()
+    m = vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+    colours = (np.clip(np.asarray(m.vertex_colors), 0.0, 1.0) * 255).astype(np.uint8)
     return trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles),
-                           vertex_colors=(np.asarray(m.vertex_colors) * 255).astype(np.uint8), process=False)
+                           vertex_colors=colours if len(colours) else None, process=False)

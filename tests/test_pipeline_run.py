@@ -42,6 +42,11 @@ def test_every_mode_writes_a_run_folder(tiny_sequence, tmp_path, mode):
     assert res.metrics["ate_rmse_cm"] == m["ate_rmse_cm"]
     if mode != "frontend":
         assert m["parameters"]["total"] > 0
+    # every mode's mesh is a real surface (regression: the frontend TSDF mesh used to be empty) and evaluated
+    import trimesh
+
+    assert len(trimesh.load(out / "mesh.ply", force="mesh").faces) > 100
+    assert "mesh_accuracy_cm" in m and np.isfinite(m["mesh_accuracy_cm"])
 
 
 @pytest.mark.parametrize("args", [["run", "{tmp}/missing"], ["run", "{tmp}"], ["eval", "ate", "{tmp}/a", "{tmp}/b"],
@@ -64,3 +69,41 @@ def test_unknown_config_key_is_rejected():
         build_config("synthetic", overrides=["schedule.map_evry=2"])
     with pytest.raises(InputError, match="unknown dataset preset"):
         build_config("no-such-preset")
+
+
+def test_a_crash_mid_run_keeps_the_poses_tracked_so_far(tiny_sequence, tmp_path, monkeypatch):
+    from lrslam.pipeline.run import run_sequence
+    from lrslam.pipeline.runner import SlamRunner
+
+    real_step = SlamRunner.step
+
+    def failing_step(self, frame):
+        if frame.index == 5:
+            raise RuntimeError("simulated failure")
+        return real_step(self, frame)
+
+    monkeypatch.setattr(SlamRunner, "step", failing_step)
+    cfg = build_config("synthetic", overrides=TINY, mode="frontend")
+    with pytest.raises(RuntimeError, match="simulated"):
+        run_sequence(tiny_sequence, cfg, tmp_path / "crash", progress=False)
+    ts, poses = read_tum(tmp_path / "crash" / "trajectory_partial.txt")
+    assert len(ts) == 5 and np.all(np.isfinite(poses))
+    assert (tmp_path / "crash" / "config.yaml").is_file()
+    assert "run stopped after 5 frames" in (tmp_path / "crash" / "run.log").read_text()
+
+
+def test_console_shows_warnings_but_not_the_run_log_info(capsys):
+    import logging
+
+    from lrslam.logs import setup_console_logging
+
+    h = setup_console_logging()
+    try:
+        log = logging.getLogger("lrslam.test_console")
+        log.setLevel(logging.INFO)
+        log.info("info-line")
+        log.warning("warning-line")
+        err = capsys.readouterr().err
+    finally:
+        logging.getLogger().removeHandler(h)
+    assert "warning-line" in err and "info-line" not in err
