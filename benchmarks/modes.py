@@ -73,14 +73,17 @@ def synthetic_suite(out: Path, frames: int, overrides: list[str], seed: int) -> 
     return all(ok for _, ok in checks)
 
 
-def real_suite(out: Path, overrides: list[str], max_frames: int | None) -> None:
+def real_suite(out: Path, overrides: list[str], max_frames: int | None, stride: int, only: str | None) -> None:
     """TUM fr1/rpy and 7-Scenes redkitchen from ../shared/data (skipped when absent)."""
     from lrslam.pipeline.batch import run_batch
 
     root = Path(os.environ.get("LRSLAM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
     jobs = [("tum-cpu", sorted(root.glob("tum*rpy*"))), ("7scenes-cpu", sorted(root.glob("7scenes*kitchen*")))]
     ov = list(overrides) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
+    ov += [f"dataset.options.stride={stride}"] if stride > 1 else []
     for preset, paths in jobs:
+        if only and not preset.startswith(only):
+            continue
         if not paths:
             print(f"\n(no {preset} data under {root}; skipped)")
             continue
@@ -96,6 +99,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=150, help="synthetic loop length (>= 150 for the acceptance)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-frames", type=int, default=None, help="truncate the real sequences")
+    ap.add_argument("--stride", type=int, default=1, help="use every n-th frame of the real sequences")
+    ap.add_argument("--only", choices=("tum", "7scenes"), default=None, help="one real sequence only")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_modes"))
@@ -109,7 +114,7 @@ def main() -> int:
     if a.suite in ("synthetic", "all"):
         ok = synthetic_suite(a.out, a.frames, a.overrides, a.seed)
     if a.suite in ("real", "all"):
-        real_suite(a.out, a.overrides, a.max_frames)
+        real_suite(a.out, a.overrides, a.max_frames, a.stride, a.only)
     (a.out / "args.json").write_text(json.dumps({k: str(v) for k, v in vars(a).items()}, indent=2))
     return 0 if ok else 1
 

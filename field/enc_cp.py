@@ -9,6 +9,7 @@ appearance of the ablation variants ~10x slower and 1.8 GB heavier at 80k sample
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from lrslam.field.interp import cell_and_fraction
@@ -19,47 +20,54 @@ _CPU_CHUNK_FLOATS = 2**18  # per-chunk (samples x k C) budget on CPU: temporarie
 
 
 class _CPFeatures(torch.autograd.Function):
-    """``out[n] = sum_k prod_a lerp(lines_a, i0[n, a], t[n, a])[k]`` with lines (n_a, k * C), k-major."""
+    """``out[n] = sum_k prod_a lerp(lines_a, i0[n, a], t[n, a])[k]`` with lines (n_a, k * C), k-major.
+
+    Each per-axis lerp is one fused ``F.embedding_bag`` (gather of rows i0 and i0 + 1 with weights 1 - t, t:
+    one pass instead of gather, subtract, multiply, add), the products are formed in place, and the backward
+    recomputes the lerps the same way (measured ~1.3-1.5x faster than separate index_select arithmetic)."""
 
     @staticmethod
     def forward(ctx, lx, ly, lz, i0: torch.Tensor, t: torch.Tensor, rank: int, chunk: int) -> torch.Tensor:
         lines = (lx, ly, lz)
         n, c = len(t), lx.shape[1] // rank
         out = t.new_empty(n, c)
+        idx = torch.stack([i0, i0 + 1], dim=-1)  # (n, 3, 2) rows of both nodes per axis
+        w = torch.stack([1.0 - t, t], dim=-1)     # (n, 3, 2) their interpolation weights
         for s in range(0, n, chunk):
-            f = [_lerp(L, i0[s:s + chunk, a], t[s:s + chunk, a:a + 1])[0] for a, L in enumerate(lines)]
-            out[s:s + chunk] = (f[0] * f[1] * f[2]).view(-1, rank, c).sum(1)
-        ctx.save_for_backward(lx, ly, lz, i0, t)
+            e = s + chunk
+            f = [F.embedding_bag(idx[s:e, a], L, per_sample_weights=w[s:e, a], mode="sum")
+                 for a, L in enumerate(lines)]
+            out[s:e] = f[0].mul_(f[1]).mul_(f[2]).view(-1, rank, c).sum(1)
+        ctx.save_for_backward(lx, ly, lz, idx, w)
         ctx.rank, ctx.chunk = rank, chunk
         return out
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        lx, ly, lz, i0, t = ctx.saved_tensors
+        lx, ly, lz, idx, w = ctx.saved_tensors
         lines = (lx, ly, lz)
         need_lines = ctx.needs_input_grad[:3]
         g_lines = [torch.zeros_like(L) if need else None for L, need in zip(lines, need_lines)]
-        g_t = torch.zeros_like(t) if ctx.needs_input_grad[4] else None
-        for s in range(0, len(t), ctx.chunk):
-            e = s + ctx.chunk
-            ta = [t[s:e, a:a + 1] for a in range(3)]
-            f, diff = zip(*(_lerp(L, i0[s:e, a], ta[a]) for a, L in enumerate(lines)))
+        g_t = w.new_zeros(len(w), 3) if ctx.needs_input_grad[4] else None
+        dt = _LERP_DT.to(w)
+        for s in range(0, len(w), ctx.chunk):
+            e = min(s + ctx.chunk, len(w))
+            f = [F.embedding_bag(idx[s:e, a], L, per_sample_weights=w[s:e, a], mode="sum")
+                 for a, L in enumerate(lines)]
             gk = grad[s:e].repeat(1, ctx.rank)  # (n, k C): the output gradient for every rank component
             for a, (b, c) in enumerate(((1, 2), (0, 2), (0, 1))):
-                ga = gk * f[b] * f[c]  # d out / d f_a
+                ga = (gk * f[b]).mul_(f[c])  # d out / d f_a
                 if g_lines[a] is not None:
-                    g_lines[a].index_add_(0, i0[s:e, a], ga * (1.0 - ta[a]))
-                    g_lines[a].index_add_(0, i0[s:e, a] + 1, ga * ta[a])
-                if g_t is not None:
-                    g_t[s:e, a] = (ga * diff[a]).sum(-1)
+                    g_lines[a].index_add_(0, idx[s:e, a, 0], ga * w[s:e, a, 0:1])
+                    g_lines[a].index_add_(0, idx[s:e, a, 1], ga * w[s:e, a, 1:2])
+                if g_t is not None:  # d lerp / d t = row(i0 + 1) - row(i0)
+                    diff = F.embedding_bag(idx[s:e, a], lines[a], per_sample_weights=dt.expand(e - s, 2).contiguous(),
+                                           mode="sum")
+                    g_t[s:e, a] = (ga * diff).sum(-1)
         return g_lines[0], g_lines[1], g_lines[2], None, g_t, None, None
 
 
-def _lerp(lines: torch.Tensor, i0: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows ``i0`` and ``i0 + 1`` of (n, D) lines at fractions t (m, 1) -> (interpolated (m, D), row difference)."""
-    r0 = lines.index_select(0, i0)
-    d = lines.index_select(0, i0 + 1) - r0
-    return r0 + t * d, d
+_LERP_DT = torch.tensor([-1.0, 1.0])
 
 
 def cp_features(lx: torch.Tensor, ly: torch.Tensor, lz: torch.Tensor, x01: torch.Tensor, rank: int) -> torch.Tensor:
