@@ -8,6 +8,9 @@ and reports parameter counts (encodings, as the paper) and peak memory (CUDA: ``
 peak RSS growth of a fresh worker process during the steps). Each row runs in its own process.
 
 Usage: ``python benchmarks/field_speed.py [--sizes 2000x40 500x32] [--reps 5] [--threads N] [--quick]``.
+
+``--paired`` instead alternates CP-SA and tri-plane steps in one process and reports the median per-pair ratio:
+on a shared virtual CPU whose speed drifts by ~1.5x between phases this comparison is the robust one.
 """
 
 from __future__ import annotations
@@ -39,8 +42,8 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * resource.getpagesize() / 2**20
 
 
-def worker(spec: dict) -> dict:
-    """Time one configuration in this process (called in a fresh subprocess)."""
+def _setup(spec: dict):
+    """Model, optimisers and the two timed steps for one configuration -> (model, map_step, track_step)."""
     import numpy as np
     import torch
 
@@ -92,6 +95,47 @@ def worker(spec: dict) -> dict:
         loss.backward()
         popt.step()
 
+    return model, map_step, track_step
+
+
+def paired(spec: dict, presets: tuple[str, str] = ("cp-sa", "triplane")) -> dict:
+    """Both representations in one process, steps alternated A, B, A, B, ...: each pair sees the same machine
+    state, so the ratio is robust to the slow/fast phases of a shared (virtual) CPU. Medians in ms and the
+    median of the per-pair ratios A / B."""
+    import numpy as np
+
+    from contextlib import ExitStack
+
+    out = {}
+    setups = [_setup({**spec, "preset": p, "overrides": {}}) for p in presets]
+    for kind in ("map", "track"):
+        steps = [s[1] if kind == "map" else s[2] for s in setups]
+        times = np.zeros((spec["reps"], 2))
+        with ExitStack() as stack:
+            if kind == "track":  # tracking: frozen fields (cached Six-axis planes), as in worker()
+                for m, _, _ in setups:
+                    stack.enter_context(m.frozen())
+            for st in steps:
+                st()  # warm-up
+            for i in range(spec["reps"]):
+                for j, st in enumerate(steps):
+                    t0 = time.perf_counter()
+                    st()
+                    times[i, j] = 1000 * (time.perf_counter() - t0)
+        out[kind] = {"a_ms": float(np.median(times[:, 0])), "b_ms": float(np.median(times[:, 1])),
+                     "ratio": float(np.median(times[:, 0] / times[:, 1])),
+                     "a_range": [float(times[:, 0].min()), float(times[:, 0].max())]}
+    return out
+
+
+def worker(spec: dict) -> dict:
+    """Time one configuration in this process (called in a fresh subprocess)."""
+    import numpy as np
+    import torch
+
+    model, map_step, track_step = _setup(spec)
+    dev = torch.device(spec["device"])
+
     def timed(step, reps):
         step()  # warm-up (kernel selection, allocator)
         if dev.type == "cuda":
@@ -129,6 +173,8 @@ def main() -> None:
     ap.add_argument("--devices", nargs="+", default=None, help="default: cpu, plus cuda when available")
     ap.add_argument("--quick", action="store_true", help="only cp-sa, cp-sa direct and triplane")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    ap.add_argument("--paired", action="store_true",
+                    help="cp-sa vs triplane alternated step by step in one process (robust ratio on a noisy CPU)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -138,6 +184,21 @@ def main() -> None:
     import torch
 
     devices = args.devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    if args.paired:
+        print("paired: cp-sa (A) vs triplane (B), steps alternated in one process, median over "
+              f"{max(args.reps, 10)} pairs")
+        for device in devices:
+            for size in args.sizes:
+                n_rays, n_samples = (int(v) for v in size.lower().split("x"))
+                spec = {"device": device, "rays": n_rays, "samples": n_samples, "reps": max(args.reps, 10),
+                        "threads": args.threads}
+                r = paired(spec)
+                for kind in ("map", "track"):
+                    k = r[kind]
+                    print(f"{device:5s} {size:>9s} {kind:5s}  cp-sa {k['a_ms']:7.1f} ms "
+                          f"(range {k['a_range'][0]:.0f}-{k['a_range'][1]:.0f})  triplane {k['b_ms']:7.1f} ms  "
+                          f"cp-sa/triplane {k['ratio']:.2f}", flush=True)
+        return
     variants = [v for v in VARIANTS if not args.quick or v[0] in ("cp-sa (LRSLAM)", "cp-sa, SA direct",
                                                                   "triplane (ESLAM)")]
     rows = []

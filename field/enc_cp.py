@@ -55,11 +55,12 @@ class _CPFeatures(torch.autograd.Function):
             f = [F.embedding_bag(idx[s:e, a], L, per_sample_weights=w[s:e, a], mode="sum")
                  for a, L in enumerate(lines)]
             gk = grad[s:e].repeat(1, ctx.rank)  # (n, k C): the output gradient for every rank component
+            wt = w[s:e].permute(1, 2, 0).contiguous()  # (3, 2, n): contiguous weight columns broadcast faster
             for a, (b, c) in enumerate(((1, 2), (0, 2), (0, 1))):
                 ga = (gk * f[b]).mul_(f[c])  # d out / d f_a
                 if g_lines[a] is not None:
-                    g_lines[a].index_add_(0, idx[s:e, a, 0], ga * w[s:e, a, 0:1])
-                    g_lines[a].index_add_(0, idx[s:e, a, 1], ga * w[s:e, a, 1:2])
+                    g_lines[a].index_add_(0, idx[s:e, a, 0], ga * wt[a, 0].unsqueeze(1))
+                    g_lines[a].index_add_(0, idx[s:e, a, 1], ga * wt[a, 1].unsqueeze(1))
                 if g_t is not None:  # d lerp / d t = row(i0 + 1) - row(i0)
                     diff = F.embedding_bag(idx[s:e, a], lines[a], per_sample_weights=dt.expand(e - s, 2).contiguous(),
                                            mode="sum")
