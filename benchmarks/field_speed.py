@@ -21,6 +21,7 @@ import resource
 import subprocess
 import sys
 import time
+from contextlib import ExitStack
 
 ROOM0 = [[-1.9, 7.9], [-2.2, 4.5], [-2.5, 2.3]]
 # (label, model preset, encoding overrides applied to the Six-axis / tri-plane encodings)
@@ -104,8 +105,6 @@ def paired(spec: dict, presets: tuple[str, str] = ("cp-sa", "triplane")) -> dict
     median of the per-pair ratios A / B."""
     import numpy as np
 
-    from contextlib import ExitStack
-
     out = {}
     setups = [_setup({**spec, "preset": p, "overrides": {}}) for p in presets]
     for kind in ("map", "track"):
@@ -185,13 +184,12 @@ def main() -> None:
 
     devices = args.devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     if args.paired:
-        print("paired: cp-sa (A) vs triplane (B), steps alternated in one process, median over "
-              f"{max(args.reps, 10)} pairs")
+        reps = max(args.reps, 10)
+        print(f"paired: cp-sa (A) vs triplane (B), steps alternated in one process, median over {reps} pairs")
         for device in devices:
             for size in args.sizes:
                 n_rays, n_samples = (int(v) for v in size.lower().split("x"))
-                spec = {"device": device, "rays": n_rays, "samples": n_samples, "reps": max(args.reps, 10),
-                        "threads": args.threads}
+                spec = {"device": device, "rays": n_rays, "samples": n_samples, "reps": reps, "threads": args.threads}
                 r = paired(spec)
                 for kind in ("map", "track"):
                     k = r[kind]

@@ -9,10 +9,9 @@ appearance of the ablation variants ~10x slower and 1.8 GB heavier at 80k sample
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from lrslam.field.interp import cell_and_fraction
+from lrslam.field.interp import cell_and_fraction, lerp_row_diff, scatter_weighted_, weighted_rows
 
 __all__ = ["CPLevel", "cp_features"]
 
@@ -22,9 +21,9 @@ _CPU_CHUNK_FLOATS = 2**18  # per-chunk (samples x k C) budget on CPU: temporarie
 class _CPFeatures(torch.autograd.Function):
     """``out[n] = sum_k prod_a lerp(lines_a, i0[n, a], t[n, a])[k]`` with lines (n_a, k * C), k-major.
 
-    Each per-axis lerp is one fused ``F.embedding_bag`` (gather of rows i0 and i0 + 1 with weights 1 - t, t:
-    one pass instead of gather, subtract, multiply, add), the products are formed in place, and the backward
-    recomputes the lerps the same way (measured ~1.3-1.5x faster than separate index_select arithmetic)."""
+    Each per-axis lerp is one fused ``F.embedding_bag`` (``interp.weighted_rows``: rows i0 and i0 + 1 with weights
+    1 - t, t in one pass instead of gather, subtract, multiply, add), the products are formed in place, and the
+    backward recomputes the lerps the same way (measured ~1.3-1.5x faster than separate index_select arithmetic)."""
 
     @staticmethod
     def forward(ctx, lx, ly, lz, i0: torch.Tensor, t: torch.Tensor, rank: int, chunk: int) -> torch.Tensor:
@@ -35,8 +34,7 @@ class _CPFeatures(torch.autograd.Function):
         w = torch.stack([1.0 - t, t], dim=-1)     # (n, 3, 2) their interpolation weights
         for s in range(0, n, chunk):
             e = s + chunk
-            f = [F.embedding_bag(idx[s:e, a], L, per_sample_weights=w[s:e, a], mode="sum")
-                 for a, L in enumerate(lines)]
+            f = [weighted_rows(L, idx[s:e, a], w[s:e, a]) for a, L in enumerate(lines)]
             out[s:e] = f[0].mul_(f[1]).mul_(f[2]).view(-1, rank, c).sum(1)
         ctx.save_for_backward(lx, ly, lz, idx, w)
         ctx.rank, ctx.chunk = rank, chunk
@@ -49,26 +47,17 @@ class _CPFeatures(torch.autograd.Function):
         need_lines = ctx.needs_input_grad[:3]
         g_lines = [torch.zeros_like(L) if need else None for L, need in zip(lines, need_lines)]
         g_t = w.new_zeros(len(w), 3) if ctx.needs_input_grad[4] else None
-        dt = _LERP_DT.to(w)
         for s in range(0, len(w), ctx.chunk):
-            e = min(s + ctx.chunk, len(w))
-            f = [F.embedding_bag(idx[s:e, a], L, per_sample_weights=w[s:e, a], mode="sum")
-                 for a, L in enumerate(lines)]
+            e = s + ctx.chunk
+            f = [weighted_rows(L, idx[s:e, a], w[s:e, a]) for a, L in enumerate(lines)]
             gk = grad[s:e].repeat(1, ctx.rank)  # (n, k C): the output gradient for every rank component
-            wt = w[s:e].permute(1, 2, 0).contiguous()  # (3, 2, n): contiguous weight columns broadcast faster
             for a, (b, c) in enumerate(((1, 2), (0, 2), (0, 1))):
                 ga = (gk * f[b]).mul_(f[c])  # d out / d f_a
                 if g_lines[a] is not None:
-                    g_lines[a].index_add_(0, idx[s:e, a, 0], ga * wt[a, 0].unsqueeze(1))
-                    g_lines[a].index_add_(0, idx[s:e, a, 1], ga * wt[a, 1].unsqueeze(1))
+                    scatter_weighted_(g_lines[a], idx[s:e, a], ga, w[s:e, a])
                 if g_t is not None:  # d lerp / d t = row(i0 + 1) - row(i0)
-                    diff = F.embedding_bag(idx[s:e, a], lines[a], per_sample_weights=dt.expand(e - s, 2).contiguous(),
-                                           mode="sum")
-                    g_t[s:e, a] = (ga * diff).sum(-1)
+                    g_t[s:e, a] = (ga * lerp_row_diff(lines[a], idx[s:e, a])).sum(-1)
         return g_lines[0], g_lines[1], g_lines[2], None, g_t, None, None
-
-
-_LERP_DT = torch.tensor([-1.0, 1.0])
 
 
 def cp_features(lx: torch.Tensor, ly: torch.Tensor, lz: torch.Tensor, x01: torch.Tensor, rank: int) -> torch.Tensor:
