@@ -8,6 +8,7 @@ and reports parameter counts (encodings, as the paper) and peak memory (CUDA: ``
 peak RSS growth of a fresh worker process during the steps). Each row runs in its own process.
 
 Usage: ``python benchmarks/field_speed.py [--sizes 2000x40 500x32] [--reps 5] [--threads N] [--quick]``.
+Rows marked "torch kernels" use the pure-PyTorch samplers instead of the default fused numba kernels on CPU.
 
 ``--paired`` instead alternates CP-SA and tri-plane steps in one process and reports the median per-pair ratio:
 on a shared virtual CPU whose speed drifts by ~1.5x between phases this comparison is the robust one.
@@ -27,15 +28,16 @@ ROOM0 = [[-1.9, 7.9], [-2.2, 4.5], [-2.5, 2.3]]
 # (label, model preset, encoding overrides applied to the Six-axis / tri-plane encodings)
 VARIANTS = [
     ("cp-sa (LRSLAM)", "cp-sa", {}),
-    ("cp-sa, SA ebag", "cp-sa", {"sampler": "ebag"}),
-    ("cp-sa, SA grid_sample", "cp-sa", {"sampler": "grid_sample"}),
+    ("cp-sa, torch kernels", "cp-sa", {"sampler": "gather"}),
     ("cp-sa, SA direct", "cp-sa", {"sa_evaluation": "direct"}),
     ("cp-cp", "cp-cp", {}),
     ("sa-sa", "sa-sa", {}),
     ("sa-cp", "sa-cp", {}),
     ("triplane (ESLAM)", "triplane", {}),
+    ("triplane, torch kernels", "triplane", {"sampler": "gather"}),
     ("triplane, grid_sample", "triplane", {"sampler": "grid_sample"}),
 ]
+QUICK = ("cp-sa (LRSLAM)", "cp-sa, torch kernels", "cp-sa, SA direct", "triplane (ESLAM)", "triplane, torch kernels")
 
 
 def _rss_mb() -> float:
@@ -58,10 +60,9 @@ def _setup(spec: dict):
     dev = torch.device(spec["device"])
     cfg = SceneModelConfig.preset(spec["preset"])
     updates = {}
-    for role in ("geometry", "appearance"):
-        enc = getattr(cfg, role)
-        if enc.kind in ("sa", "triplane") and spec["overrides"]:
-            updates[role] = enc.model_copy(update=spec["overrides"])
+    for role in ("geometry", "appearance"):  # overrides apply to every encoding (sa_evaluation: Six-axis only)
+        if spec["overrides"]:
+            updates[role] = getattr(cfg, role).model_copy(update=spec["overrides"])
     cfg = cfg.model_copy(update=updates)
     torch.manual_seed(0)
     model = SceneModel(np.array(ROOM0), cfg, dev)
@@ -106,7 +107,7 @@ def paired(spec: dict, presets: tuple[str, str] = ("cp-sa", "triplane")) -> dict
     import numpy as np
 
     out = {}
-    setups = [_setup({**spec, "preset": p, "overrides": {}}) for p in presets]
+    setups = [_setup({**spec, "preset": p, "overrides": spec.get("overrides", {})}) for p in presets]
     for kind in ("map", "track"):
         steps = [s[1] if kind == "map" else s[2] for s in setups]
         times = np.zeros((spec["reps"], 2))
@@ -170,7 +171,10 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch default)")
     ap.add_argument("--devices", nargs="+", default=None, help="default: cpu, plus cuda when available")
-    ap.add_argument("--quick", action="store_true", help="only cp-sa, cp-sa direct and triplane")
+    ap.add_argument("--quick", action="store_true", help="only cp-sa and triplane (numba and torch kernels) and "
+                    "cp-sa with point-by-point Six-axis")
+    ap.add_argument("--torch-kernels", action="store_true",
+                    help="with --paired: both models on the torch samplers instead of the numba kernels")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
     ap.add_argument("--paired", action="store_true",
                     help="cp-sa vs triplane alternated step by step in one process (robust ratio on a noisy CPU)")
@@ -185,11 +189,14 @@ def main() -> None:
     devices = args.devices or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     if args.paired:
         reps = max(args.reps, 10)
-        print(f"paired: cp-sa (A) vs triplane (B), steps alternated in one process, median over {reps} pairs")
+        kernels = "torch kernels" if args.torch_kernels else "default kernels (numba on CPU)"
+        print(f"paired: cp-sa (A) vs triplane (B), {kernels}, steps alternated in one process, "
+              f"median over {reps} pairs")
         for device in devices:
             for size in args.sizes:
                 n_rays, n_samples = (int(v) for v in size.lower().split("x"))
-                spec = {"device": device, "rays": n_rays, "samples": n_samples, "reps": reps, "threads": args.threads}
+                spec = {"device": device, "rays": n_rays, "samples": n_samples, "reps": reps, "threads": args.threads,
+                        "overrides": {"sampler": "gather"} if args.torch_kernels else {}}
                 r = paired(spec)
                 for kind in ("map", "track"):
                     k = r[kind]
@@ -197,8 +204,7 @@ def main() -> None:
                           f"(range {k['a_range'][0]:.0f}-{k['a_range'][1]:.0f})  triplane {k['b_ms']:7.1f} ms  "
                           f"cp-sa/triplane {k['ratio']:.2f}", flush=True)
         return
-    variants = [v for v in VARIANTS if not args.quick or v[0] in ("cp-sa (LRSLAM)", "cp-sa, SA direct",
-                                                                  "triplane (ESLAM)")]
+    variants = [v for v in VARIANTS if not args.quick or v[0] in QUICK]
     rows = []
     header = (f"{'representation':24s} {'device':6s} {'rays x samp':>11s} {'map ms':>9s} {'track ms':>9s} "
               f"{'f_g':>9s} {'f_a':>9s} {'total':>9s} {'map MB':>8s} {'track MB':>8s}")

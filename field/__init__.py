@@ -2,7 +2,8 @@
 Torch lives only here.
 
 Components, one concept per module:
-  grid (bound growth, grid sizes) -> interp (line / plane interpolation) -> enc_cp, enc_sixaxis, enc_triplane
+  grid (bound growth, grid sizes) -> interp (line / plane interpolation; cpu_kernels = fused numba loops,
+  cpu_ops = their torch autograd wrappers, the CPU default) -> enc_cp, enc_sixaxis, enc_triplane
   (one level each) -> encodings (coarse + fine, config, factory) -> decoders -> model (SceneModel + presets);
   poses (differentiable pose parameterisations), rays (pixels -> rays), sampling (depths along rays),
   render (Eq. volume_render), losses (ESLAM losses); inputs (numpy -> tensors), keyframes (database, window

@@ -4,6 +4,8 @@ CP cannot be materialised into planes like Six-axis: every sample costs O(k C). 
 evaluation is one autograd function that works through the samples in cache-sized chunks and recomputes the
 interpolated lines in the backward pass instead of keeping (N, k C) intermediates (which made the k = 16
 appearance of the ablation variants ~10x slower and 1.8 GB heavier at 80k samples). On CUDA it runs unchunked.
+On CPU the default is the fused numba kernel (:func:`lrslam.field.cpu_ops.cp_product`, ~5x faster again); this
+torch version is the reference and the CUDA path.
 """
 
 from __future__ import annotations
@@ -11,7 +13,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from lrslam.field.interp import cell_and_fraction, lerp_row_diff, scatter_weighted_, weighted_rows
+from lrslam.field.cpu_ops import cp_product, use_numba
+from lrslam.field.grid import cell_and_fraction
+from lrslam.field.interp import lerp_row_diff, scatter_weighted_, weighted_rows
 
 __all__ = ["CPLevel", "cp_features"]
 
@@ -60,9 +64,14 @@ class _CPFeatures(torch.autograd.Function):
         return g_lines[0], g_lines[1], g_lines[2], None, g_t, None, None
 
 
-def cp_features(lx: torch.Tensor, ly: torch.Tensor, lz: torch.Tensor, x01: torch.Tensor, rank: int) -> torch.Tensor:
+def cp_features(lx: torch.Tensor, ly: torch.Tensor, lz: torch.Tensor, x01: torch.Tensor, rank: int,
+                kernel: str = "gather") -> torch.Tensor:
     """CP features of unit coordinates ``x01`` (N, 3) from lines ``l_a`` (n_a, k C) (k-major) -> (N, C).
-    Differentiable in the lines and in ``x01``."""
+    Differentiable in the lines and in ``x01``. ``kernel="numba"`` uses the fused CPU kernel
+    (:func:`lrslam.field.cpu_ops.cp_product`) when the tensors allow it (CPU, float), anything else the torch
+    implementation below."""
+    if use_numba(kernel, lx, ly, lz, x01):
+        return cp_product(lx, ly, lz, x01, rank)
     idx, frac = zip(*(cell_and_fraction(x01[:, a], L.shape[0]) for a, L in enumerate((lx, ly, lz))))
     chunk = max(256, _CPU_CHUNK_FLOATS // lx.shape[1]) if x01.device.type == "cpu" else max(1, len(x01))
     return _CPFeatures.apply(lx, ly, lz, torch.stack(idx, -1), torch.stack(frac, -1), rank, chunk)
@@ -73,16 +82,19 @@ class CPLevel(nn.Module):
 
     Args:
         shape: nodes per axis ``(nx, ny, nz)``. rank: k. channels: C. init_std: N(0, std) initialisation.
+        kernel: ``"numba"`` (fused CPU kernels, used on CPU tensors) or ``"gather"`` (torch).
     Parameters: ``x (nx, k, C)``, ``y (ny, k, C)``, ``z (nz, k, C)``; ``k C (nx + ny + nz)`` in total.
     Each line is interpolated linearly, the three are multiplied elementwise over C and summed over the rank.
     """
 
-    def __init__(self, shape: tuple[int, int, int], rank: int, channels: int, init_std: float) -> None:
+    def __init__(self, shape: tuple[int, int, int], rank: int, channels: int, init_std: float,
+                 kernel: str = "gather") -> None:
         super().__init__()
-        self.rank, self.channels = rank, channels
+        self.rank, self.channels, self.kernel = rank, channels, kernel
         self.x, self.y, self.z = (nn.Parameter(torch.randn(n, rank, channels) * init_std) for n in shape)
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
         """Unit coordinates (N, 3) -> features (N, C)."""
         kc = self.rank * self.channels
-        return cp_features(self.x.view(-1, kc), self.y.view(-1, kc), self.z.view(-1, kc), x01, self.rank)
+        return cp_features(self.x.view(-1, kc), self.y.view(-1, kc), self.z.view(-1, kc), x01, self.rank,
+                           self.kernel)

@@ -7,7 +7,8 @@ materialising each rank-k plane ``P_ab = sum_i f_{a_b}^(i) (outer) f_{b_a}^(i)``
 number of samples) and sampling it bilinearly. Bilinear interpolation of a sum of outer products equals the sum
 of products of the linearly interpolated lines, so both modes give the same values (test: 1e-5). Only the lines
 are parameters; the planes are transients rebuilt every forward pass (differentiable), or cached while the
-model is frozen (tracking, meshing).
+model is frozen (tracking, meshing). On CPU with the numba kernels a forward pass materialises only the cells
+its samples touch (:func:`lrslam.field.cpu_ops.sixaxis_sum`; same values).
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ from typing import Literal
 import torch
 from torch import nn
 
-from lrslam.field.interp import sample_lines, sample_plane
+from lrslam.field.cpu_ops import outer_sum, sixaxis_sum, use_numba
+from lrslam.field.interp import sample_lines, sample_plane_sum
 
 __all__ = ["SixAxisLevel", "SAEvaluation"]
 
@@ -27,9 +29,12 @@ SAEvaluation = Literal["materialise", "direct"]
 _PLANES = ((0, 1, "x_y", "y_x"), (1, 2, "y_z", "z_y"), (2, 0, "z_x", "x_z"))
 
 
-def _outer_sum(la: torch.Tensor, lb: torch.Tensor) -> torch.Tensor:
-    """``P[a, b, c] = sum_k la[a, k, c] * lb[b, k, c]`` as one batched matmul over channels -> (n_a, n_b, C),
-    row-major so that bilinear lookups gather contiguous C-vectors."""
+def _outer_sum(la: torch.Tensor, lb: torch.Tensor, sampler: str = "gather") -> torch.Tensor:
+    """``P[a, b, c] = sum_k la[a, k, c] * lb[b, k, c]`` -> (n_a, n_b, C), row-major so that bilinear lookups
+    gather contiguous C-vectors: the numba kernel when ``sampler == "numba"`` allows it, else one batched matmul
+    over channels."""
+    if use_numba(sampler, la, lb):
+        return outer_sum(la, lb)
     P = torch.bmm(la.permute(2, 0, 1), lb.permute(2, 1, 0))  # (C, n_a, n_b)
     return P.permute(1, 2, 0).contiguous()
 
@@ -60,7 +65,7 @@ class SixAxisLevel(nn.Module):
         (``einsum('akc,bkc->abc')``, contiguous)."""
         if self.caching and self._cache is not None:
             return self._cache
-        out = [_outer_sum(getattr(self, n_ab), getattr(self, n_ba)) for _, _, n_ab, n_ba in _PLANES]
+        out = [_outer_sum(getattr(self, n_ab), getattr(self, n_ba), self.sampler) for _, _, n_ab, n_ba in _PLANES]
         if self.caching:
             self._cache = out
         return out
@@ -74,11 +79,11 @@ class SixAxisLevel(nn.Module):
         """Unit coordinates (N, 3) -> features (N, C)."""
         if self.evaluation == "direct":
             return self._direct(x01)
-        out = None
-        for (a, b, _, _), plane in zip(_PLANES, self.planes()):
-            f = sample_plane(plane, x01[:, a], x01[:, b], self.sampler)
-            out = f if out is None else out + f
-        return out
+        coords = [(x01[:, a], x01[:, b]) for a, b, _, _ in _PLANES]
+        pairs = [(getattr(self, n_ab), getattr(self, n_ba)) for _, _, n_ab, n_ba in _PLANES]
+        if not self.caching and use_numba(self.sampler, x01, *(L for pair in pairs for L in pair)):
+            return sixaxis_sum(pairs, coords)  # fused: only the touched cells are materialised
+        return sample_plane_sum(self.planes(), coords, self.sampler)
 
     def _direct(self, x01: torch.Tensor) -> torch.Tensor:
         k, c = self.rank, self.channels

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from lrslam.field.interp import sample_plane
+from lrslam.field.interp import sample_plane_sum
 
 __all__ = ["TriPlaneLevel"]
 
@@ -15,7 +15,7 @@ class TriPlaneLevel(nn.Module):
 
     Args:
         shape: nodes per axis ``(nx, ny, nz)``. channels: C. init_std: std of the N(0, std) initialisation.
-        sampler: ``"gather"`` or ``"grid_sample"`` (see :mod:`lrslam.field.interp`).
+        sampler: ``"numba"``, ``"gather"``, ``"ebag"`` or ``"grid_sample"`` (see :mod:`lrslam.field.interp`).
     Parameters: ``xy (nx, ny, C)``, ``xz (nx, nz, C)``, ``yz (ny, nz, C)`` (ESLAM stores the same planes as
     ``(1, C, n_b, n_a)``; the count ``C (nx ny + nx nz + ny nz)`` is identical).
     """
@@ -31,5 +31,4 @@ class TriPlaneLevel(nn.Module):
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
         """Unit coordinates (N, 3) -> features (N, C)."""
         x, y, z = x01.unbind(-1)
-        s = self.sampler
-        return sample_plane(self.xy, x, y, s) + sample_plane(self.xz, x, z, s) + sample_plane(self.yz, y, z, s)
+        return sample_plane_sum((self.xy, self.xz, self.yz), ((x, y), (x, z), (y, z)), self.sampler)

@@ -29,7 +29,8 @@ class EncodingConfig(StrictModel):
     kind: ``"cp"`` (Eq. cp), ``"sa"`` (Six-axis, Eq. sixaxis) or ``"triplane"`` (ESLAM, Eq. triplane).
     rank: k (ignored by ``triplane``). coarse_res / fine_res: metres per grid cell of the two levels.
     channels: C per level. init_std: features start N(0, init_std) (ESLAM: 0.01).
-    sampler: plane/line interpolation kernel (``auto`` = gather; see :mod:`lrslam.field.interp`).
+    sampler: plane/line interpolation kernel (``auto`` = the numba kernels on CPU when available, else gather;
+    see :mod:`lrslam.field.interp`).
     sa_evaluation: Six-axis only, ``materialise`` (fast) or ``direct`` (point by point; tests/benchmarks).
     """
 
@@ -62,7 +63,7 @@ class Encoding(nn.Module):
             if cfg.kind == "triplane":
                 levels.append(TriPlaneLevel(shape, cfg.channels, cfg.init_std, sampler))
             elif cfg.kind == "cp":
-                levels.append(CPLevel(shape, cfg.rank, cfg.channels, cfg.init_std))
+                levels.append(CPLevel(shape, cfg.rank, cfg.channels, cfg.init_std, sampler))
             else:
                 levels.append(SixAxisLevel(shape, cfg.rank, cfg.channels, cfg.init_std, sampler, cfg.sa_evaluation))
         self.levels = nn.ModuleList(levels)

@@ -16,7 +16,7 @@ import torch
 
 from lrslam.errors import InputError
 
-__all__ = ["COARSE_VOXEL", "check_bound", "grow_bound", "grid_shape", "unit_coordinates"]
+__all__ = ["COARSE_VOXEL", "check_bound", "grow_bound", "grid_shape", "unit_coordinates", "cell_and_fraction"]
 
 COARSE_VOXEL = 0.24  # metres: ESLAM's ``planes_res.bound_dividable``
 
@@ -66,3 +66,11 @@ def unit_coordinates(p: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
     """World points ``p`` (N, 3) metres -> coordinates in ``[0, 1]`` per axis of ``bound`` (3, 2) (not clamped)."""
     lo = bound[:, 0]
     return (p - lo) / (bound[:, 1] - lo)
+
+
+def cell_and_fraction(x01: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit coordinates ``x01`` (N,) on an axis with ``n`` nodes -> lower node index (N,) int64 in
+    ``[0, n-2]`` and fraction (N,) in ``[0, 1]`` (differentiable in ``x01`` inside the bound)."""
+    u = (x01 * (n - 1)).clamp(0.0, float(n - 1))
+    i0 = u.detach().floor().clamp(max=n - 2).long()
+    return i0, u - i0

@@ -13,6 +13,9 @@ contiguous rows. Two samplers with identical values:
   derivatives. No (N, corners, C) temporaries, unlike PyTorch's own sort-based ``embedding_bag`` backward.
 - ``"ebag"``: ``F.embedding_bag`` with PyTorch's autograd (reference; planes only, lines always use gather).
 - ``"grid_sample"``: ``F.grid_sample`` on the plane viewed as ``(1, C, n_a, n_b)``.
+- ``"numba"``: the fused CPU kernels (:mod:`lrslam.field.cpu_ops`: all planes of a level summed in one pass,
+  backward in one more); CPU float tensors only, anything else falls back to ``"gather"``. ``"auto"`` picks it
+  on CPU when numba imports.
 
 Gradients flow to the features and to the coordinates (through the interpolation weights), never through the
 integer cell indices: pose gradients reach the field this way.
@@ -20,20 +23,25 @@ integer cell indices: pose gradients reach the field this way.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Sampler", "resolve_sampler", "cell_and_fraction", "sample_lines", "sample_plane", "weighted_rows",
-           "lerp_row_diff", "scatter_weighted_"]
+from lrslam.field.cpu_ops import numba_available, planes_sum, use_numba
+from lrslam.field.grid import cell_and_fraction
 
-Sampler = Literal["auto", "gather", "ebag", "grid_sample"]
+__all__ = ["Sampler", "resolve_sampler", "cell_and_fraction", "sample_lines", "sample_plane", "sample_plane_sum",
+           "weighted_rows", "lerp_row_diff", "scatter_weighted_"]
+
+Sampler = Literal["auto", "gather", "ebag", "grid_sample", "numba"]
 
 
 def resolve_sampler(sampler: Sampler, device: torch.device | str) -> str:
-    """``"auto"`` -> ``"gather"`` (measured fastest on CPU; also used on CUDA unless set explicitly)."""
-    return "gather" if sampler == "auto" else sampler
+    """``"auto"`` -> ``"numba"`` on CPU when numba imports (measured fastest there), else ``"gather"``."""
+    if sampler != "auto":
+        return sampler
+    return "numba" if torch.device(device).type == "cpu" and numba_available() else "gather"
 
 
 def weighted_rows(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -108,14 +116,6 @@ class _GatherBilerp(torch.autograd.Function):
 _LERP_DT = torch.tensor([-1.0, 1.0])
 
 
-def cell_and_fraction(x01: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unit coordinates ``x01`` (N,) on an axis with ``n`` nodes -> lower node index (N,) int64 in
-    ``[0, n-2]`` and fraction (N,) in ``[0, 1]`` (differentiable in ``x01`` inside the bound)."""
-    u = (x01 * (n - 1)).clamp(0.0, float(n - 1))
-    i0 = u.detach().floor().clamp(max=n - 2).long()
-    return i0, u - i0
-
-
 def sample_lines(lines: torch.Tensor, x01: torch.Tensor) -> torch.Tensor:
     """Linear interpolation of feature lines.
 
@@ -135,11 +135,13 @@ def sample_plane(plane: torch.Tensor, xa01: torch.Tensor, xb01: torch.Tensor, sa
     Args:
         plane: (n_a, n_b, C) features on the a-b grid.
         xa01, xb01: (N,) unit coordinates along a and b.
-        sampler: ``"gather"``, ``"ebag"`` or ``"grid_sample"`` (same values).
+        sampler: ``"gather"``, ``"ebag"``, ``"grid_sample"`` or ``"numba"`` (same values).
     Returns:
         (N, C) interpolated features.
     """
     na, nb, c = plane.shape
+    if sampler == "numba":
+        return sample_plane_sum([plane], [(xa01, xb01)], sampler)
     if sampler == "grid_sample":
         grid = torch.stack([xb01, xa01], dim=-1) * 2.0 - 1.0  # grid x indexes the last (b) axis
         out = F.grid_sample(plane.permute(2, 0, 1).unsqueeze(0), grid.view(1, -1, 1, 2), mode="bilinear",
@@ -156,3 +158,24 @@ def sample_plane(plane: torch.Tensor, xa01: torch.Tensor, xb01: torch.Tensor, sa
         w = torch.stack([(1 - ta) * (1 - tb), (1 - ta) * tb, ta * (1 - tb), ta * tb], dim=-1)
         return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
     return _GatherBilerp.apply(table, ia * nb + ib, nb, ta, tb)
+
+
+def sample_plane_sum(planes: Sequence[torch.Tensor], coords: Sequence[tuple[torch.Tensor, torch.Tensor]],
+                     sampler: str = "gather") -> torch.Tensor:
+    """``sum_p sample_plane(planes[p], *coords[p])``: the features of one tri-plane / Six-axis level.
+
+    Args:
+        planes: P planes (n_a, n_b, C) (channels equal, sizes may differ).
+        coords: P pairs (xa01, xb01) of (N,) unit coordinates along each plane's two axes.
+        sampler: as :func:`sample_plane`; ``"numba"`` evaluates all P planes in one fused kernel.
+    Returns:
+        (N, C) summed features, differentiable in the planes and the coordinates.
+    """
+    if not use_numba(sampler, *planes, *(x for pair in coords for x in pair)):
+        sampler = "gather" if sampler == "numba" else sampler
+        out = None
+        for plane, (xa, xb) in zip(planes, coords):
+            f = sample_plane(plane, xa, xb, sampler)
+            out = f if out is None else out + f
+        return out
+    return planes_sum(planes, coords)

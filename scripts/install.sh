@@ -31,3 +31,5 @@ fi
 "$VENV/bin/python" -m pip install -q "$TORCH_SPEC"
 "$VENV/bin/python" -m pip install -q -e ".[test]"
 "$VENV/bin/python" -c "import open3d, gtsam, kiss_icp, torch, lrslam.field, lrslam.frontend, lrslam.backend, lrslam.pipeline; print('[install] ok: torch', torch.__version__, '| open3d', open3d.__version__, '| cuda', torch.cuda.is_available())"
+# compile the numba CPU kernels once (cached on disk), so the first run and the tests do not pay for it
+"$VENV/bin/python" -c "from lrslam.field.cpu_ops import warm_up; print('[install] numba kernels:', 'compiled' if warm_up() else 'unavailable, torch kernels in use')"

@@ -90,7 +90,7 @@ def test_linear_and_bilinear_interpolation_closed_forms_and_border():
         torch.testing.assert_close(sample_plane(plane, xa, xb, s)[:, 0], torch.tensor([1.5 + 0.5, 5.0]))
 
 
-@pytest.mark.parametrize("sampler", ["gather", "grid_sample"])
+@pytest.mark.parametrize("sampler", ["gather", "grid_sample", "numba"])
 def test_six_axis_materialised_equals_direct_values_and_gradients(sampler):
     torch.manual_seed(1)
     mat = SixAxisLevel((23, 17, 11), rank=16, channels=8, init_std=0.3, sampler=sampler)
