@@ -17,30 +17,18 @@ row is ``base = a0 * n_b + b0``, fractions ``ta, tb`` in [0, 1]; CP lines are ``
 node ``i0`` and fraction ``t`` per axis.
 
 Threads: ``numba.set_num_threads`` is set from torch's thread count before each call. Backward passes split the
-samples between threads, each accumulating into its own copy of the (small) gradient tables that are summed
-afterwards; the large fine Six-axis planes are instead split by channels (measured: private copies are ~6x
-faster on the coarse planes, where channel blocks of one row share cache lines, and no faster on the fine ones
-once their zeroing and summation is counted).
+samples between threads, each accumulating into its own copy of the gradient tables; for planes only the rows
+the samples touch are zeroed and summed (:func:`mark_cells`, :func:`zero_rows`, :func:`reduce_rows`). Measured
+against splitting the channels of one shared table between threads: ~6x faster on the coarse planes (channel
+blocks of one row share cache lines) and ~4x on the fine 3 cm ones in a mapping step.
 """
 
 from __future__ import annotations
 
 from numba import njit, prange
 
-__all__ = ["planes_forward", "planes_backward", "planes_backward_channels", "cp_forward", "cp_backward",
-           "mark_cells", "outer_sum_forward", "outer_sum_backward", "zero_rows", "channel_blocks",
-           "PRIVATE_TABLE_FLOATS"]
-
-# Plane gradients go to per-thread copies (samples split between threads, no write conflicts, no false sharing)
-# while all P tables of a call hold at most this many floats; larger ones (the fine 3 cm Six-axis planes:
-# ~5 M floats) are shared and split by channels, where copying and summing them would cost more than it saves.
-PRIVATE_TABLE_FLOATS = 2**20
-_MIN_BLOCK_CHANNELS = 16  # 64 bytes of float32: a block fills whole cache lines
-
-
-def channel_blocks(channels: int, threads: int) -> int:
-    """How many channel blocks :func:`planes_backward_channels` uses: one per thread, each >= 16 channels."""
-    return max(1, min(threads, channels // _MIN_BLOCK_CHANNELS))
+__all__ = ["planes_forward", "planes_backward", "cp_forward", "cp_backward", "mark_cells", "outer_sum_forward",
+           "outer_sum_backward", "zero_rows", "reduce_rows"]
 
 
 @njit(parallel=True, fastmath=True, cache=True, nogil=True)
@@ -73,8 +61,9 @@ def planes_backward(tables, g_tables, base, nb, ta, tb, grad, g_ta, g_tb, need_t
     # pragma: no cover - compiled
     """Adjoint of :func:`planes_forward` for the output gradient ``grad`` (N, C), samples split between threads.
 
-    g_tables: tuple of P zeroed (n_threads, n_a * n_b, C) per-thread gradient tables, accumulated in place when
-    ``need_tables`` (the caller sums axis 0; only for small tables, see :func:`planes_backward_channels`).
+    g_tables: tuple of P (n_threads, n_a * n_b, C) per-thread gradient tables, accumulated in place when
+    ``need_tables``: the rows the samples touch must be zero on entry (:func:`mark_cells`, :func:`zero_rows`),
+    the caller sums the copies (:func:`reduce_rows`).
     g_ta, g_tb: (N, P) written with ``d out / d ta . grad`` (resp. tb) when ``need_coords``.
     """
     n_samples, channels = grad.shape
@@ -113,36 +102,6 @@ def planes_backward(tables, g_tables, base, nb, ta, tb, grad, g_ta, g_tb, need_t
                         sb += g * ((1.0 - a) * (p01 - p00) + a * (p11 - p10))
                     g_ta[n, p] = sa
                     g_tb[n, p] = sb
-
-
-@njit(parallel=True, fastmath=True, cache=True, nogil=True)
-def planes_backward_channels(g_tables, base, nb, ta, tb, grad, n_blocks):  # pragma: no cover - compiled
-    """Feature gradients of :func:`planes_forward` into shared zeroed tables, channels split between threads:
-    block ``k`` owns channels ``[k * step, (k + 1) * step)`` of every row, so no two threads write the same
-    entry. For large tables (no per-thread copies); rows should start on cache lines (page-aligned arrays with
-    ``C * 4 / n_blocks`` a multiple of 64 bytes) or the blocks share lines."""
-    n_samples, channels = grad.shape
-    step = (channels + n_blocks - 1) // n_blocks
-    for blk in prange(n_blocks):
-        c0 = blk * step
-        c1 = min(channels, c0 + step)
-        for n in range(n_samples):
-            for p in range(len(g_tables)):
-                i = base[n, p]
-                j = i + nb[p]
-                a = ta[n, p]
-                b = tb[n, p]
-                G = g_tables[p]
-                w00 = (1.0 - a) * (1.0 - b)
-                w01 = (1.0 - a) * b
-                w10 = a * (1.0 - b)
-                w11 = a * b
-                for c in range(c0, c1):
-                    g = grad[n, c]
-                    G[i, c] += w00 * g
-                    G[i + 1, c] += w01 * g
-                    G[j, c] += w10 * g
-                    G[j + 1, c] += w11 * g
 
 
 @njit(parallel=True, fastmath=True, cache=True, nogil=True)
@@ -282,9 +241,23 @@ def outer_sum_backward(grad, la, lb, g_la, g_lb, need_a, need_b, mask, use_mask)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def zero_rows(table, mask):  # pragma: no cover - compiled
-    """``table[r] = 0`` for every row r (of (R, C)) where ``mask`` (R,) is set."""
-    for r in prange(table.shape[0]):
+def zero_rows(tables, mask):  # pragma: no cover - compiled
+    """``tables[h, r] = 0`` for every copy h of (H, R, C) and every row r where ``mask`` (R,) is set."""
+    for r in prange(tables.shape[1]):
         if mask[r]:
-            for c in range(table.shape[1]):
-                table[r, c] = 0.0
+            for h in range(tables.shape[0]):
+                for c in range(tables.shape[2]):
+                    tables[h, r, c] = 0.0
+
+
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def reduce_rows(tables, mask, out):  # pragma: no cover - compiled
+    """``out[r] = sum_h tables[h, r]`` for the rows r where ``mask`` is set (others untouched); ``out`` may be
+    ``tables[0]``."""
+    for r in prange(tables.shape[1]):
+        if mask[r]:
+            for c in range(tables.shape[2]):
+                acc = tables[0, r, c]
+                for h in range(1, tables.shape[0]):
+                    acc += tables[h, r, c]
+                out[r, c] = acc

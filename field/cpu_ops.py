@@ -21,6 +21,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import threading
 from typing import Sequence
 
 import numpy as np
@@ -95,36 +96,56 @@ def _plane_cells(shapes: Sequence[tuple[int, int]], coords: Sequence[tuple[torch
     return torch.stack(bases, -1).contiguous(), np.array([nb for _, nb in shapes], np.int64), ta, tb
 
 
+def _scratch(shapes: Sequence[tuple[int, ...]], dtype: np.dtype) -> tuple[np.ndarray, ...]:
+    """Per-thread gradient tables, kept between calls (per Python thread) so that a backward pass only zeroes
+    the rows it touches instead of allocating and faulting in fresh pages (~20 MB per fine level)."""
+    cache = _SCRATCH.__dict__.setdefault("tables", {})
+    out = []
+    for shape in shapes:
+        key = (tuple(shape), np.dtype(dtype).str)
+        if key not in cache:
+            if len(cache) >= _SCRATCH_MAX:
+                cache.clear()
+            cache[key] = np.empty(shape, dtype)
+        out.append(cache[key])
+    return tuple(out)
+
+
+_SCRATCH = threading.local()
+_SCRATCH_MAX = 12  # table shapes kept (a model has at most 2 encodings x 2 levels x 3 planes)
+
+
 def _planes_backward(tables: tuple[np.ndarray, ...], base: np.ndarray, nb: np.ndarray, ta: np.ndarray,
                      tb: np.ndarray, grad: np.ndarray, need_tables: bool, need_coords: bool,
-                     masks: Sequence[np.ndarray] | None = None):
+                     masks: Sequence[np.ndarray] | None = None, dense: bool = True):
     """Gradients of :func:`cpu_kernels.planes_forward`: (list of table gradients or None, g_ta, g_tb or None).
 
-    Small tables get per-thread copies (samples split); large ones one shared table split by channels. With
-    ``masks`` (the touched rows per table) a large gradient table is only zeroed at those rows: the rest is
-    garbage, so only a caller that reads just the masked rows may pass them."""
+    Samples are split between threads, each accumulating into its own copy of the tables (only the touched rows
+    are zeroed and summed). ``dense=True`` returns new zero-filled gradient tables; ``dense=False`` returns
+    views of the scratch copies with only the touched rows (``masks``) valid, valid until the next call, for a
+    caller that reads just those rows right away."""
     K = _kernels()
     threads = numba_threads()
-    private = need_tables and sum(T.size for T in tables) <= K.PRIVATE_TABLE_FLOATS
-    g_tables = None
-    if need_tables and not private:
+    if need_tables:
         if masks is None:
-            g_tables = tuple(np.zeros_like(T) for T in tables)
-        else:
-            g_tables = tuple(np.empty_like(T) for T in tables)
-            for G, m in zip(g_tables, masks):
-                K.zero_rows(G, m)
-        K.planes_backward_channels(g_tables, base, nb, ta, tb, grad, K.channel_blocks(grad.shape[1], threads))
+            masks = tuple(np.zeros(len(T), np.bool_) for T in tables)
+            K.mark_cells(base, nb, masks)
+        per_thread = _scratch([(threads, *T.shape) for T in tables], tables[0].dtype)
+        for S, m in zip(per_thread, masks):
+            K.zero_rows(S, m)
+    else:
+        per_thread = tuple(np.empty((threads, 1, 1), T.dtype) for T in tables)  # unused placeholders
     g_ta = np.empty(base.shape if need_coords else (1, 1), grad.dtype)
     g_tb = np.empty_like(g_ta)
-    if private or need_coords:
-        per_thread = tuple(np.zeros((threads, *T.shape), T.dtype) for T in tables) if private else \
-            tuple(np.empty((threads, 1, 1), T.dtype) for T in tables)  # unused placeholders
-        K.planes_backward(tables, per_thread, base, nb, ta, tb, grad, g_ta, g_tb, private, need_coords)
-        if private:
-            g_tables = tuple(G[0] if threads == 1 else G.sum(0) for G in per_thread)
-    return (list(g_tables) if need_tables else None), (g_ta if need_coords else None), \
-        (g_tb if need_coords else None)
+    K.planes_backward(tables, per_thread, base, nb, ta, tb, grad, g_ta, g_tb, need_tables, need_coords)
+    g_tables = None
+    if need_tables:
+        g_tables = []
+        for S, m in zip(per_thread, masks):
+            out = np.zeros(S.shape[1:], S.dtype) if dense else S[0]
+            K.reduce_rows(S, m, out)
+            g_tables.append(out)
+    return g_tables, (g_ta if need_coords else None), (g_tb if need_coords else None)
 
 
 class _Planes(torch.autograd.Function):
@@ -269,7 +290,8 @@ class _SixAxis(torch.autograd.Function):
         need_lines = any(ctx.needs_input_grad[4:])
         need_coords = ctx.needs_input_grad[2] or ctx.needs_input_grad[3]
         g_planes, g_ta, g_tb = _planes_backward(ctx.planes, base.numpy(), ctx.nb, _np(ta), _np(tb),
-                                                _np(grad.to(lines[0].dtype)), need_lines, need_coords, ctx.masks)
+                                                _np(grad.to(lines[0].dtype)), need_lines, need_coords, ctx.masks,
+                                                dense=False)  # only the touched cells are read below
         g_lines: list[torch.Tensor | None] = [None] * len(lines)
         if need_lines:
             numba_threads()
@@ -313,9 +335,4 @@ def warm_up() -> bool:
     outs = [cp_product(*(L.view(L.shape[0], -1) for L in lines), x, rank=2), planes_sum(planes, coords),
             sixaxis_sum(pairs, coords)]
     sum(o.square().sum() for o in outs).backward()
-    K = _kernels()  # the shared-table path only runs for large planes: compile it on small ones here
-    g = tuple(np.zeros((P.shape[0] * P.shape[1], 4), np.float32) for P in planes)
-    base, nb, ta, tb = _plane_cells([P.shape[:2] for P in planes], coords, torch.float32)
-    K.zero_rows(g[0], np.ones(len(g[0]), np.bool_))
-    K.planes_backward_channels(g, base.numpy(), nb, _np(ta), _np(tb), np.ones((64, 4), np.float32), 1)
     return True
