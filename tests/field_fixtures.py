@@ -114,3 +114,26 @@ def umeyama_ate(est: np.ndarray, gt: np.ndarray) -> float:
     R = U @ S @ Vt
     aligned = (est - mu_e) @ R.T + mu_g
     return float(np.sqrt(np.mean(np.sum((aligned - gt) ** 2, axis=1))))
+
+
+def run_and_backprop(fn, module, x):
+    """Evaluate ``fn`` at unit coordinates ``x`` (N, 3) and backpropagate a fixed weighting of its (N, C)
+    output -> (output, [gradient of the coordinates] + gradients of ``module``'s parameters)."""
+    import torch
+
+    xi = x.clone().requires_grad_()
+    out = fn(xi)
+    (out * torch.linspace(-1, 1, out.shape[1])).sum().backward()
+    grads = [xi.grad] + [p.grad.clone() for p in module.parameters()]
+    module.zero_grad()
+    return out.detach(), grads
+
+
+def assert_same_values_and_gradients(a, b):
+    """Two :func:`run_and_backprop` results agree: values to 1e-5, gradients to 1e-5 of their largest entry."""
+    import torch
+
+    torch.testing.assert_close(a[0], b[0], atol=1e-5, rtol=1e-5)
+    for ga, gb in zip(a[1], b[1]):
+        scale = max(1.0, float(gb.abs().max()))
+        torch.testing.assert_close(ga / scale, gb / scale, atol=1e-5, rtol=1e-5)

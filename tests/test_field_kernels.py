@@ -16,6 +16,8 @@ from lrslam.field.enc_triplane import TriPlaneLevel  # noqa: E402
 from lrslam.field.interp import resolve_sampler  # noqa: E402
 from lrslam.field.model import SceneModel, SceneModelConfig  # noqa: E402
 
+from field_fixtures import assert_same_values_and_gradients, run_and_backprop  # noqa: E402
+
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba kernels unavailable")
 
 SMALL = (9, 7, 6)          # every cell of every plane touched by the samples
@@ -29,15 +31,6 @@ def _levels(shape, sampler):
             "tri": TriPlaneLevel(shape, channels=32, init_std=0.3, sampler=sampler)}
 
 
-def _values_and_grads(level, x):
-    xi = x.clone().requires_grad_()
-    out = level(xi)
-    (out * torch.linspace(-1, 1, out.shape[1])).sum().backward()
-    grads = [xi.grad] + [p.grad.clone() for p in level.parameters()]
-    level.zero_grad()
-    return out.detach(), grads
-
-
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("shape", [SMALL, LARGE], ids=["dense", "sparse"])
 def test_numba_levels_match_torch_values_and_gradients(threads, shape):
@@ -47,11 +40,8 @@ def test_numba_levels_match_torch_values_and_gradients(threads, shape):
         x = torch.rand(3000, 3) * 1.2 - 0.1  # some samples outside the bound: border values
         ref, fast = _levels(shape, "gather"), _levels(shape, "numba")
         for name in ref:
-            a, b = _values_and_grads(ref[name], x), _values_and_grads(fast[name], x)
-            torch.testing.assert_close(b[0], a[0], atol=1e-6, rtol=1e-5, msg=f"{name} values")
-            for i, (ga, gb) in enumerate(zip(a[1], b[1])):
-                scale = float(ga.abs().max())
-                torch.testing.assert_close(gb, ga, atol=1e-5 * scale, rtol=1e-4, msg=f"{name} gradient {i}")
+            assert_same_values_and_gradients(run_and_backprop(fast[name], fast[name], x),
+                                             run_and_backprop(ref[name], ref[name], x))
     finally:
         torch.set_num_threads(old)
 
@@ -62,9 +52,8 @@ def test_reused_gradient_scratch_holds_no_stale_rows():
     ref, fast = _levels(LARGE, "gather"), _levels(LARGE, "numba")
     for x in (torch.rand(500, 3) * 0.3, torch.rand(500, 3) * 0.3 + 0.1, torch.rand(500, 3) * 0.3):
         for name in ("sa", "tri"):
-            a, b = _values_and_grads(ref[name], x), _values_and_grads(fast[name], x)
-            for ga, gb in zip(a[1], b[1]):
-                torch.testing.assert_close(gb, ga, atol=1e-5 * float(ga.abs().max()), rtol=1e-4)
+            assert_same_values_and_gradients(run_and_backprop(fast[name], fast[name], x),
+                                             run_and_backprop(ref[name], ref[name], x))
 
 
 def test_fused_six_axis_touches_few_cells_and_equals_the_full_planes():

@@ -12,6 +12,8 @@ from lrslam.field.grid import grid_shape, grow_bound
 from lrslam.field.interp import sample_lines, sample_plane
 from lrslam.field.model import PRESETS, SceneModel, SceneModelConfig
 
+from field_fixtures import assert_same_values_and_gradients, run_and_backprop
+
 REPLICA_ROOM0 = np.array([[-1.9, 7.9], [-2.2, 4.5], [-2.5, 2.3]])
 
 
@@ -97,7 +99,7 @@ def test_six_axis_materialised_equals_direct_values_and_gradients(sampler):
     direct = SixAxisLevel((23, 17, 11), rank=16, channels=8, init_std=0.3, sampler=sampler, evaluation="direct")
     direct.load_state_dict(mat.state_dict())
     x = torch.rand(500, 3, dtype=torch.float32)
-    _assert_same_values_and_gradients(_run(mat, mat, x), _run(direct, direct, x))
+    assert_same_values_and_gradients(run_and_backprop(mat, mat, x), run_and_backprop(direct, direct, x))
 
 
 def test_plane_samplers_agree_on_values_and_gradients():
@@ -141,22 +143,4 @@ def test_chunked_cp_evaluation_matches_plain_autograd(rank):
         f = [sample_lines(L.view(L.shape[0], -1), xi[:, a]) for a, L in enumerate((lvl.x, lvl.y, lvl.z))]
         return (f[0] * f[1] * f[2]).view(-1, rank, 32).sum(1)
 
-    _assert_same_values_and_gradients(_run(lvl, lvl, x), _run(reference, lvl, x))
-
-
-def _run(fn, module, x):
-    """Evaluate ``fn`` at ``x`` (N, 3) and backpropagate a fixed weighting of its output -> (output, gradients of
-    the coordinates and of ``module``'s parameters)."""
-    xi = x.clone().requires_grad_()
-    out = fn(xi)
-    (out * torch.linspace(-1, 1, out.shape[1])).sum().backward()
-    grads = [xi.grad] + [p.grad.clone() for p in module.parameters()]
-    module.zero_grad()
-    return out.detach(), grads
-
-
-def _assert_same_values_and_gradients(a, b):
-    torch.testing.assert_close(a[0], b[0], atol=1e-5, rtol=1e-5)
-    for ga, gb in zip(a[1], b[1]):
-        scale = max(1.0, float(gb.abs().max()))
-        torch.testing.assert_close(ga / scale, gb / scale, atol=1e-5, rtol=1e-5)
+    assert_same_values_and_gradients(run_and_backprop(lvl, lvl, x), run_and_backprop(reference, lvl, x))
