@@ -70,7 +70,10 @@ def unit_coordinates(p: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
 
 def cell_and_fraction(x01: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit coordinates ``x01`` (N,) on an axis with ``n`` nodes -> lower node index (N,) int64 in
-    ``[0, n-2]`` and fraction (N,) in ``[0, 1]`` (differentiable in ``x01`` inside the bound)."""
+    ``[0, n-2]`` and fraction (N,) in ``[0, 1]`` (differentiable in ``x01`` inside the bound).
+
+    A NaN coordinate (a diverged pose) gets index 0 and a NaN fraction: the index stays inside the table (the
+    CPU kernels do not bounds-check) and the NaN still reaches the output, where the optimisers detect it."""
     u = (x01 * (n - 1)).clamp(0.0, float(n - 1))
-    i0 = u.detach().floor().clamp(max=n - 2).long()
+    i0 = torch.nan_to_num(u.detach(), nan=0.0).floor().clamp(max=n - 2).long()
     return i0, u - i0

@@ -113,3 +113,17 @@ def test_frozen_model_uses_cached_planes_with_the_kernels():
         assert m.appearance.levels[1]._cache is not None
     torch.testing.assert_close(after, before.detach(), atol=1e-6, rtol=1e-5)
     assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+
+
+def test_nan_coordinates_give_nan_features_not_a_crash():
+    # a diverged pose puts NaN into the sample positions: indices must stay in range for the unchecked kernels
+    x = torch.rand(100, 3)
+    x[::7, 1] = float("nan")
+    x[3] = float("inf")
+    for name, level in _levels(LARGE, "numba").items():
+        xi = x.clone().requires_grad_()
+        out = level(xi)
+        assert torch.isnan(out[::7]).all(), name
+        assert torch.isfinite(out[1:7]).all() and torch.isfinite(out[3]).all(), name
+        out.sum().backward()  # no crash, gradients exist
+        assert xi.grad is not None
