@@ -1,6 +1,6 @@
 """Fused CPU kernels (numba) for the feature lookups: bilinear plane sums and CP line products, forward and
-backward in one pass each over the samples, on numpy arrays (the torch wrappers are in
-:mod:`lrslam.field.interp` and :mod:`lrslam.field.enc_cp`).
+backward in one pass each over the samples, on numpy arrays (the torch autograd wrappers are in
+:mod:`lrslam.field.cpu_ops`).
 
 Six-axis levels are fused further (:func:`mark_cells` + masked :func:`outer_sum_forward` /
 :func:`outer_sum_backward`): only the plane cells the samples touch are materialised and back-propagated.
@@ -20,7 +20,7 @@ Threads: ``numba.set_num_threads`` is set from torch's thread count before each 
 samples between threads, each accumulating into its own copy of the gradient tables; for planes only the rows
 the samples touch are zeroed and summed (:func:`mark_cells`, :func:`zero_rows`, :func:`reduce_rows`). Measured
 against splitting the channels of one shared table between threads: ~6x faster on the coarse planes (channel
-blocks of one row share cache lines) and ~4x on the fine 3 cm ones in a mapping step.
+blocks of one row share cache lines) and ~2x on the fine 3 cm ones in a mapping step.
 """
 
 from __future__ import annotations
