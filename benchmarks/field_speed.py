@@ -25,7 +25,7 @@ import time
 from contextlib import ExitStack
 
 ROOM0 = [[-1.9, 7.9], [-2.2, 4.5], [-2.5, 2.3]]
-# (label, model preset, encoding overrides applied to the Six-axis / tri-plane encodings)
+# (label, model preset, overrides applied to both encodings' configs; sa_evaluation only affects Six-axis)
 VARIANTS = [
     ("cp-sa (LRSLAM)", "cp-sa", {}),
     ("cp-sa, torch kernels", "cp-sa", {"sampler": "gather"}),

@@ -293,8 +293,7 @@ class _SixAxis(torch.autograd.Function):
                                                 _np(grad.to(lines[0].dtype)), need_lines, need_coords, ctx.masks,
                                                 dense=False)  # only the touched cells are read below
         g_lines: list[torch.Tensor | None] = [None] * len(lines)
-        if need_lines:
-            numba_threads()
+        if need_lines:  # numba's thread count was set by _planes_backward
             for p, (na, nbp) in enumerate(ctx.shapes):
                 la, lb = arrays[2 * p], arrays[2 * p + 1]
                 g_a, g_b = np.empty_like(la), np.empty_like(lb)
@@ -323,7 +322,7 @@ def sixaxis_sum(line_pairs: Sequence[tuple[torch.Tensor, torch.Tensor]],
 
 def warm_up() -> bool:
     """Compile (or load from numba's on-disk cache) every kernel for float32, forward and backward, on tiny
-    inputs, so the first SLAM frame is not timed with the compilation (~30 s once per install). Returns whether
+    inputs, so the first SLAM frame is not timed with the compilation (~20 s once per install). Returns whether
     the kernels are available."""
     if not numba_available():
         return False

@@ -65,12 +65,12 @@ class _CPFeatures(torch.autograd.Function):
 
 
 def cp_features(lx: torch.Tensor, ly: torch.Tensor, lz: torch.Tensor, x01: torch.Tensor, rank: int,
-                kernel: str = "gather") -> torch.Tensor:
+                sampler: str = "gather") -> torch.Tensor:
     """CP features of unit coordinates ``x01`` (N, 3) from lines ``l_a`` (n_a, k C) (k-major) -> (N, C).
-    Differentiable in the lines and in ``x01``. ``kernel="numba"`` uses the fused CPU kernel
+    Differentiable in the lines and in ``x01``. ``sampler="numba"`` uses the fused CPU kernel
     (:func:`lrslam.field.cpu_ops.cp_product`) when the tensors allow it (CPU, float), anything else the torch
     implementation below."""
-    if use_numba(kernel, lx, ly, lz, x01):
+    if use_numba(sampler, lx, ly, lz, x01):
         return cp_product(lx, ly, lz, x01, rank)
     idx, frac = zip(*(cell_and_fraction(x01[:, a], L.shape[0]) for a, L in enumerate((lx, ly, lz))))
     chunk = max(256, _CPU_CHUNK_FLOATS // lx.shape[1]) if x01.device.type == "cpu" else max(1, len(x01))
@@ -82,19 +82,20 @@ class CPLevel(nn.Module):
 
     Args:
         shape: nodes per axis ``(nx, ny, nz)``. rank: k. channels: C. init_std: N(0, std) initialisation.
-        kernel: ``"numba"`` (fused CPU kernels, used on CPU tensors) or ``"gather"`` (torch).
+        sampler: ``"numba"`` (fused CPU kernel, used on CPU tensors) or anything else: the torch kernel below
+            (lines are always gathered; the plane sampler names apply to the other levels).
     Parameters: ``x (nx, k, C)``, ``y (ny, k, C)``, ``z (nz, k, C)``; ``k C (nx + ny + nz)`` in total.
     Each line is interpolated linearly, the three are multiplied elementwise over C and summed over the rank.
     """
 
     def __init__(self, shape: tuple[int, int, int], rank: int, channels: int, init_std: float,
-                 kernel: str = "gather") -> None:
+                 sampler: str = "gather") -> None:
         super().__init__()
-        self.rank, self.channels, self.kernel = rank, channels, kernel
+        self.rank, self.channels, self.sampler = rank, channels, sampler
         self.x, self.y, self.z = (nn.Parameter(torch.randn(n, rank, channels) * init_std) for n in shape)
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
         """Unit coordinates (N, 3) -> features (N, C)."""
         kc = self.rank * self.channels
         return cp_features(self.x.view(-1, kc), self.y.view(-1, kc), self.z.view(-1, kc), x01, self.rank,
-                           self.kernel)
+                           self.sampler)

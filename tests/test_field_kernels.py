@@ -26,7 +26,7 @@ LARGE = (200, 150, 120)    # most cells untouched: exercises the touched-row zer
 
 def _levels(shape, sampler):
     torch.manual_seed(0)
-    return {"cp": CPLevel(shape, rank=2, channels=32, init_std=0.3, kernel=sampler),
+    return {"cp": CPLevel(shape, rank=2, channels=32, init_std=0.3, sampler=sampler),
             "sa": SixAxisLevel(shape, rank=16, channels=32, init_std=0.3, sampler=sampler),
             "tri": TriPlaneLevel(shape, channels=32, init_std=0.3, sampler=sampler)}
 
@@ -99,7 +99,7 @@ def test_numba_sampler_selection_and_fallbacks():
     torch.testing.assert_close(lvl(x), ref(x))
     # the default model on CPU uses the kernels for every level
     m = SceneModel(np.array([[-1.0, 1.0], [-1.0, 1.0], [0.0, 1.5]]), SceneModelConfig())
-    assert {lv.kernel for lv in m.geometry.levels} == {"numba"}
+    assert {lv.sampler for lv in m.geometry.levels} == {"numba"}
     assert {lv.sampler for lv in m.appearance.levels} == {"numba"}
 
 
