@@ -6,8 +6,13 @@ Nodes are camera poses ``T_w_c`` (4x4) keyed by keyframe id; a factor ``(i, j, T
 keyframe j's camera sits at ``T_i_j`` in keyframe i's camera, with information for a right perturbation
 ``T_i_j exp(xi)``, ``xi = [rotation (rad), translation (m)]`` (see :mod:`lrslam.backend.conversions`).
 
-The factor list is kept as plain numpy records (:meth:`PoseGraph.state`), so a graph can be checkpointed and
-rebuilt (:meth:`PoseGraph.from_state`).
+The graph holds **no pose estimates**: it keeps the keyframe ids and the factor records (plain numpy,
+:meth:`PoseGraph.state`, so it can be checkpointed and rebuilt with :meth:`PoseGraph.from_state`), and every
+:meth:`PoseGraph.optimise` starts from the poses the caller (the pipeline's trajectory, their one owner) passes
+in, mapper refinements included. A factor's measurement can be replaced (:meth:`PoseGraph.set_measurement`),
+e.g. to re-state a field factor from the current poses. With ``optimiser="isam2"`` GTSAM keeps its own
+linearisation point between calls (new keyframes start from the given poses): use ``lm`` (default) or ``gnc``
+for a solve that always starts from the owner's poses.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from pydantic import Field
 from lrslam.backend.conversions import gaussian_from_information, key, pose_to_gtsam, robust_noise, values_to_dict
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.frontend.rgbd_view import diagonal_information
+from lrslam.geometry import diagonal_information
 
 __all__ = ["GraphConfig", "PoseGraph"]
 
@@ -59,7 +64,7 @@ class GraphConfig(StrictModel):
         0.0, ge=0, description="GNC: inlier cost threshold of a loop (0 = GTSAM's default)")
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Factor:
     kind: FactorKind
     i: int
@@ -72,13 +77,9 @@ class PoseGraph:
     """Keyframe pose graph. See module docstring for conventions."""
 
     def __init__(self, cfg: GraphConfig):
-        import gtsam
-
         self.cfg = cfg
-        self._initial: dict[int, np.ndarray] = {}
-        self._estimate: dict[int, np.ndarray] = {}
+        self._ids: list[int] = []
         self._factors: list[_Factor] = []
-        self._graph = gtsam.NonlinearFactorGraph()
         self._constrained: set[int] = set()  # keyframes that appear in a factor
         self._isam = None
         self._isam_keys: set[int] = set()
@@ -89,7 +90,7 @@ class PoseGraph:
     # -- building --------------------------------------------------------------------------------------------
     @property
     def keyframe_ids(self) -> list[int]:
-        return list(self._initial)
+        return list(self._ids)
 
     @property
     def n_loops(self) -> int:
@@ -99,16 +100,17 @@ class PoseGraph:
     def n_factors(self) -> int:
         return len(self._factors)
 
-    def add_keyframe(self, kf_id: int, T_w_c_initial: np.ndarray) -> None:
-        """Add node ``kf_id`` with initial estimate ``T_w_c_initial`` (4x4). The first keyframe gets a prior at
-        its initial pose (``prior_sigma_*``), which fixes the gauge."""
+    def add_keyframe(self, kf_id: int, T_w_c_prior: np.ndarray | None = None) -> None:
+        """Add node ``kf_id``. The first keyframe needs ``T_w_c_prior`` (4x4): a prior there (``prior_sigma_*``)
+        fixes the gauge. Later keyframes ignore it (their poses come with each :meth:`optimise`)."""
         kf_id = int(kf_id)
-        if kf_id in self._initial:
+        if kf_id in self._ids:
             raise InputError(f"pose graph: keyframe {kf_id} added twice")
-        pose_to_gtsam(T_w_c_initial, f"pose graph: initial pose of keyframe {kf_id}")
-        self._initial[kf_id] = np.asarray(T_w_c_initial, dtype=np.float64).copy()
-        if len(self._initial) == 1:
-            self.add_prior(kf_id, T_w_c_initial)
+        if not self._ids and T_w_c_prior is None:
+            raise InputError(f"pose graph: the first keyframe ({kf_id}) needs a prior pose")
+        self._ids.append(kf_id)
+        if len(self._ids) == 1:
+            self.add_prior(kf_id, T_w_c_prior)
 
     def add_prior(self, kf_id: int, T_w_c: np.ndarray, information: np.ndarray | None = None) -> None:
         """Prior factor on keyframe ``kf_id`` (default information from ``prior_sigma_*``)."""
@@ -136,69 +138,108 @@ class PoseGraph:
         """Loop-closure between factor, wrapped in the configured robust kernel."""
         self._add("loop", i, j, T_i_j, information)
 
-    def _add(self, kind: FactorKind, i: int, j: int, T: np.ndarray, information: np.ndarray) -> None:
-        import gtsam
+    def set_measurement(self, kind: FactorKind, i: int, j: int, T_i_j: np.ndarray,
+                        information: np.ndarray | None = None) -> bool:
+        """Replace the measurement (and optionally the information) of the existing ``kind`` factor ``i``-``j``.
+        Returns False when there is no such factor. Not with ``isam2`` (its factors are already inside GTSAM)."""
+        if self.cfg.optimiser == "isam2":
+            raise InputError("pose graph: set_measurement needs optimiser lm or gnc")
+        for f in self._factors:
+            if f.kind == kind and (f.i, f.j) == (int(i), int(j)):
+                f.T = self._check(kind, i, j, T_i_j, f.information if information is None else information)[0]
+                if information is not None:
+                    f.information = np.asarray(information, dtype=np.float64).copy()
+                return True
+        return False
 
-        i, j = int(i), int(j)
+    def _check(self, kind: FactorKind, i: int, j: int, T: np.ndarray, information: np.ndarray):
         what = f"pose graph: {kind} factor {i}-{j}"
         for k in {i, j}:
-            if k not in self._initial:
+            if k not in self._ids:
                 raise InputError(f"{what}: keyframe {k} was never added")
         if kind != "prior" and i == j:
             raise InputError(f"{what}: a between factor needs two different keyframes")
-        pose = pose_to_gtsam(T, what)
-        noise = gaussian_from_information(information, f"{what}: information")
-        robust = kind == "loop" or (self.cfg.robust_sequential and kind in ("odometry", "field"))
-        if robust and self.cfg.optimiser != "gnc":  # GNC applies its own robust loss to the loops
-            noise = robust_noise(noise, self.cfg.robust_kernel, self.cfg.robust_parameter)
-        if kind == "prior":
-            factor = gtsam.PriorFactorPose3(key(i), pose, noise)
-        else:
-            factor = gtsam.BetweenFactorPose3(key(i), key(j), pose, noise)
-        self._graph.add(factor)
-        self._factors.append(_Factor(kind, i, j, np.asarray(T, dtype=np.float64).copy(),
-                                     np.asarray(information, dtype=np.float64).copy()))
+        pose_to_gtsam(T, what)
+        gaussian_from_information(information, f"{what}: information")
+        return np.asarray(T, dtype=np.float64).copy(), np.asarray(information, dtype=np.float64).copy()
+
+    def _add(self, kind: FactorKind, i: int, j: int, T: np.ndarray, information: np.ndarray) -> None:
+        i, j = int(i), int(j)
+        T, information = self._check(kind, i, j, T, information)
+        self._factors.append(_Factor(kind, i, j, T, information))
         self._constrained.update((i, j))
 
+    def _gtsam_factor(self, f: _Factor):
+        import gtsam
+
+        pose = pose_to_gtsam(f.T)
+        noise = gaussian_from_information(f.information)
+        robust = f.kind == "loop" or (self.cfg.robust_sequential and f.kind in ("odometry", "field"))
+        if robust and self.cfg.optimiser != "gnc":  # GNC applies its own robust loss to the loops
+            noise = robust_noise(noise, self.cfg.robust_kernel, self.cfg.robust_parameter)
+        if f.kind == "prior":
+            return gtsam.PriorFactorPose3(key(f.i), pose, noise)
+        return gtsam.BetweenFactorPose3(key(f.i), key(f.j), pose, noise)
+
+    def _gtsam_graph(self):
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self._factors:
+            graph.add(self._gtsam_factor(f))
+        return graph
+
     # -- optimisation ----------------------------------------------------------------------------------------
-    def optimise(self) -> dict[int, np.ndarray]:
-        """Optimise and return ``{kf_id: T_w_c}`` for every keyframe (keyframes without any factor keep their
-        initial pose). Degenerate graphs (no keyframe, a single keyframe, no between factor) are returned as
-        they are, with a log line; a failed solve (e.g. a keyframe cluster with no path to the prior) is logged
-        and leaves the estimates unchanged."""
-        if not self._initial:
+    def optimise(self, poses: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Optimise from ``poses`` (``{kf_id: T_w_c}``, every keyframe of the graph) and return the optimised
+        ``{kf_id: T_w_c}`` for every keyframe (keyframes without any factor keep the given pose). Degenerate
+        graphs (no keyframe, no between factor) return the given poses, with a log line; a failed solve (e.g. a
+        keyframe cluster with no path to the prior) is logged and returns them unchanged too."""
+        start = self._start(poses)
+        if not self._ids:
             log.info("pose graph: no keyframes, nothing to optimise")
             return {}
         if not any(f.kind != "prior" for f in self._factors):
-            log.info("pose graph: %d keyframe(s) and no between factor, nothing to optimise", len(self._initial))
-            return self.estimates()
+            log.info("pose graph: %d keyframe(s) and no between factor, nothing to optimise", len(self._ids))
+            return start
         try:
             if self.cfg.optimiser == "isam2":
-                result = self._optimise_isam2()
+                result = self._optimise_isam2(start)
             else:
-                result = self._optimise_batch()
+                result = self._optimise_batch(start)
         except RuntimeError as e:
-            log.error("pose graph: optimisation failed (%s); keeping the previous estimates",
+            log.error("pose graph: optimisation failed (%s); keeping the given poses",
                       str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__)
             if self._isam is not None:
                 self._reset_isam()  # its state is unknown after a failed update: rebuild on the next call
-            return self.estimates()
-        self._estimate.update(result)
-        return self.estimates()
+            return start
+        return start | result
 
-    def _current_values(self, ids) -> Any:
+    def _start(self, poses: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        missing = [i for i in self._ids if i not in poses]
+        if missing:
+            raise InputError(f"pose graph: no pose given for keyframe(s) {missing}")
+        out = {}
+        for i in self._ids:
+            pose_to_gtsam(poses[i], f"pose graph: pose of keyframe {i}")
+            out[i] = np.asarray(poses[i], dtype=np.float64).copy()
+        return out
+
+    @staticmethod
+    def _values(poses: dict[int, np.ndarray], ids) -> Any:
         import gtsam
 
         values = gtsam.Values()
         for i in ids:
-            values.insert(key(i), pose_to_gtsam(self.estimate(i)))
+            values.insert(key(i), pose_to_gtsam(poses[i]))
         return values
 
-    def _optimise_batch(self) -> dict[int, np.ndarray]:
+    def _optimise_batch(self, start: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         import gtsam
 
-        ids = [i for i in self._initial if i in self._constrained]
-        initial = self._current_values(ids)
+        ids = [i for i in self._ids if i in self._constrained]
+        initial = self._values(start, ids)
+        graph = self._gtsam_graph()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.max_iterations)
         params.setRelativeErrorTol(self.cfg.relative_error_tol)
@@ -209,14 +250,14 @@ class PoseGraph:
             gnc.setKnownInliers([n for n, f in enumerate(self._factors) if f.kind != "loop"])
             if self.cfg.gnc_inlier_threshold > 0:
                 gnc.setInlierCostThreshold(self.cfg.gnc_inlier_threshold)
-            optimizer = gtsam.GncLMOptimizer(self._graph, initial, gnc)
+            optimizer = gtsam.GncLMOptimizer(graph, initial, gnc)
             result = optimizer.optimize()
             weights = np.asarray(optimizer.getWeights())
             n_out = int(sum(w < 0.5 for w, f in zip(weights, self._factors) if f.kind == "loop"))
             if n_out:
                 log.info("pose graph: GNC rejected %d of %d loop factors", n_out, self.n_loops)
         else:
-            result = gtsam.LevenbergMarquardtOptimizer(self._graph, initial, params).optimize()
+            result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
         return values_to_dict(result, ids)
 
     def _reset_isam(self) -> None:
@@ -229,14 +270,14 @@ class PoseGraph:
         self._isam_keys = set()
         self._isam_pending = 0
 
-    def _optimise_isam2(self) -> dict[int, np.ndarray]:
+    def _optimise_isam2(self, start: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         import gtsam
 
         new_factors = gtsam.NonlinearFactorGraph()
         for n in range(self._isam_pending, len(self._factors)):
-            new_factors.add(self._graph.at(n))
+            new_factors.add(self._gtsam_factor(self._factors[n]))
         new_ids = sorted({k for f in self._factors[self._isam_pending:] for k in (f.i, f.j)} - self._isam_keys)
-        self._isam.update(new_factors, self._current_values(new_ids))
+        self._isam.update(new_factors, self._values(start, new_ids))
         for _ in range(self.cfg.isam2_extra_updates):
             self._isam.update()
         self._isam_pending = len(self._factors)
@@ -244,53 +285,36 @@ class PoseGraph:
         return values_to_dict(self._isam.calculateEstimate(), sorted(self._isam_keys))
 
     # -- queries ---------------------------------------------------------------------------------------------
-    def estimate(self, kf_id: int) -> np.ndarray:
-        """Latest estimate ``T_w_c`` (4x4) of keyframe ``kf_id`` (its initial pose before any optimisation)."""
-        kf_id = int(kf_id)
-        if kf_id in self._estimate:
-            return self._estimate[kf_id].copy()
-        if kf_id in self._initial:
-            return self._initial[kf_id].copy()
-        raise InputError(f"pose graph: unknown keyframe {kf_id}")
-
-    def estimates(self) -> dict[int, np.ndarray]:
-        """``{kf_id: T_w_c}`` for every keyframe."""
-        return {i: self.estimate(i) for i in self._initial}
-
-    def marginal_covariance(self, kf_id: int) -> np.ndarray:
-        """6x6 marginal covariance of keyframe ``kf_id`` (tangent ``[rotation, translation]`` at the estimate,
-        right perturbation), at the latest estimate."""
+    def marginal_covariance(self, kf_id: int, poses: dict[int, np.ndarray]) -> np.ndarray:
+        """6x6 marginal covariance of keyframe ``kf_id`` (tangent ``[rotation, translation]``, right
+        perturbation) at ``poses`` (``{kf_id: T_w_c}``, e.g. the result of :meth:`optimise`)."""
         import gtsam
 
         kf_id = int(kf_id)
-        if kf_id not in self._initial:
+        if kf_id not in self._ids:
             raise InputError(f"pose graph: unknown keyframe {kf_id}")
         if kf_id not in self._constrained:
             raise InputError(f"pose graph: keyframe {kf_id} is not constrained by any factor")
         if self._isam is not None and kf_id in self._isam_keys:
             return np.asarray(self._isam.marginalCovariance(key(kf_id)))
-        ids = [i for i in self._initial if i in self._constrained]
-        marginals = gtsam.Marginals(self._graph, self._current_values(ids))
+        ids = [i for i in self._ids if i in self._constrained]
+        marginals = gtsam.Marginals(self._gtsam_graph(), self._values(self._start(poses), ids))
         return np.asarray(marginals.marginalCovariance(key(kf_id)))
 
     # -- state -----------------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
-        """Plain-data snapshot (numpy arrays, ints, strings) for checkpoints; see :meth:`from_state`."""
+        """Plain-data snapshot (keyframe ids and factor records) for checkpoints; see :meth:`from_state`."""
         return {
-            "initial": {i: T.copy() for i, T in self._initial.items()},
-            "estimate": {i: T.copy() for i, T in self._estimate.items()},
+            "ids": list(self._ids),
             "factors": [{"kind": f.kind, "i": f.i, "j": f.j, "T": f.T.copy(), "information": f.information.copy()}
                         for f in self._factors],
         }
 
     @classmethod
     def from_state(cls, cfg: GraphConfig, state: dict[str, Any]) -> "PoseGraph":
-        """Rebuild a graph from :meth:`state` (the first keyframe's automatic prior is not duplicated)."""
+        """Rebuild a graph from :meth:`state` (the first keyframe's prior is one of the stored factors)."""
         graph = cls(cfg)
-        for i, T in state["initial"].items():
-            graph._initial[int(i)] = np.asarray(T, dtype=np.float64)
+        graph._ids = [int(i) for i in state["ids"]]
         for f in state["factors"]:
             graph._add(f["kind"], f["i"], f["j"], f["T"], f["information"])
-        graph._estimate = {int(i): np.asarray(T, dtype=np.float64) for i, T in state["estimate"].items()}
         return graph
-

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 
 __all__ = [
     "make_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
-    "pose_error", "random_pose", "is_valid_pose", "relative",
+    "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
+    "propagate_covariance",
 ]
 
 
@@ -75,12 +76,47 @@ def pose_to_tum(T: np.ndarray) -> np.ndarray:
     return np.concatenate([T[..., :3, 3], rot_to_quat(T[..., :3, :3])], axis=-1)
 
 
+def hat(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric 3x3 matrix of a 3-vector: ``hat(w) @ x == np.cross(w, x)``."""
+    w = np.asarray(w, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a 4x4 pose for tangents ordered ``[rotation, translation]`` (as GTSAM's
+    ``Pose3.AdjointMap``): ``T exp(xi) T^-1 = exp(Ad_T xi)``."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = hat(t) @ R
+    return Ad
+
+
+def diagonal_information(sigma_rotation_rad: float, sigma_translation_m: float) -> np.ndarray:
+    """6x6 diagonal information ``diag(1/sigma_r^2 (x3), 1/sigma_t^2 (x3))`` for a ``[rotation, translation]``
+    tangent (radians, metres)."""
+    return np.diag([sigma_rotation_rad ** -2] * 3 + [sigma_translation_m ** -2] * 3)
+
+
+def propagate_covariance(T_a_b: np.ndarray, cov_a_b: np.ndarray, T_b_c: np.ndarray,
+                         cov_b_c: np.ndarray) -> np.ndarray:
+    """Covariance (6x6, right perturbation, ``[rotation, translation]``) of the composition ``T_a_c = T_a_b T_b_c``
+    of two independent relative poses: ``T_a_b exp(x1) T_b_c exp(x2) = T_a_c exp(Ad(T_b_c^-1) x1 + x2)``
+    (first order), so ``cov = A cov_a_b A^T + cov_b_c`` with ``A = Ad(inv(T_b_c))``. ``T_a_b`` only names the
+    factor; it does not enter the first-order result."""
+    del T_a_b
+    A = adjoint(inv(T_b_c))
+    return A @ np.asarray(cov_a_b, dtype=np.float64) @ A.T + np.asarray(cov_b_c, dtype=np.float64)
+
+
 def exp_se3(xi: np.ndarray) -> np.ndarray:
     """Exponential map of a 6-vector ``[omega (rad), v (m)]`` -> 4x4 pose (exact, Rodrigues + V matrix)."""
     xi = np.asarray(xi, dtype=np.float64).reshape(6)
     w, v = xi[:3], xi[3:]
     theta = np.linalg.norm(w)
-    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    W = hat(w)
     if theta < 1e-10:
         R = np.eye(3) + W
         V = np.eye(3) + 0.5 * W
@@ -98,7 +134,7 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
     theta = np.linalg.norm(w)
-    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    W = hat(w)
     if theta < 1e-10:
         V_inv = np.eye(3) - 0.5 * W
     else:

@@ -13,17 +13,16 @@ its samples touch (:func:`lrslam.field.cpu_ops.sixaxis_sum`; same values).
 
 from __future__ import annotations
 
-from typing import Literal
 
 import torch
 from torch import nn
 
+from lrslam.field.config import SAEvaluation
 from lrslam.field.cpu_ops import outer_sum, sixaxis_sum, use_numba
 from lrslam.field.interp import sample_lines, sample_plane_sum
 
 __all__ = ["SixAxisLevel", "SAEvaluation"]
 
-SAEvaluation = Literal["materialise", "direct"]
 
 # (first axis, second axis) of the three planes, and the parameter names of their two line sets.
 _PLANES = ((0, 1, "x_y", "y_x"), (1, 2, "y_z", "z_y"), (2, 0, "z_x", "x_z"))

@@ -7,41 +7,21 @@ sized from the grown bound exactly like ESLAM (:mod:`lrslam.field.grid`).
 
 from __future__ import annotations
 
-from typing import Literal
 
 import numpy as np
 import torch
 from torch import nn
 
-from lrslam.config import StrictModel
+from lrslam.field.config import EncodingConfig
 from lrslam.field.enc_cp import CPLevel
-from lrslam.field.enc_sixaxis import SAEvaluation, SixAxisLevel
+from lrslam.field.enc_sixaxis import SixAxisLevel
 from lrslam.field.enc_triplane import TriPlaneLevel
 from lrslam.field.grid import grid_shape, unit_coordinates
-from lrslam.field.interp import Sampler, resolve_sampler
+from lrslam.field.interp import resolve_sampler
 
 __all__ = ["EncodingConfig", "Encoding", "build_encoding"]
 
 
-class EncodingConfig(StrictModel):
-    """One feature encoding (geometry or appearance).
-
-    kind: ``"cp"`` (Eq. cp), ``"sa"`` (Six-axis, Eq. sixaxis) or ``"triplane"`` (ESLAM, Eq. triplane).
-    rank: k (ignored by ``triplane``). coarse_res / fine_res: metres per grid cell of the two levels.
-    channels: C per level. init_std: features start N(0, init_std) (ESLAM: 0.01).
-    sampler: plane/line interpolation kernel (``auto`` = the numba kernels on CPU when available, else gather;
-    see :mod:`lrslam.field.interp`).
-    sa_evaluation: Six-axis only, ``materialise`` (fast) or ``direct`` (point by point; tests/benchmarks).
-    """
-
-    kind: Literal["cp", "sa", "triplane"] = "cp"
-    rank: int = 2
-    coarse_res: float = 0.24
-    fine_res: float = 0.06
-    channels: int = 32
-    init_std: float = 0.01
-    sampler: Sampler = "auto"
-    sa_evaluation: SAEvaluation = "materialise"
 
 
 class Encoding(nn.Module):

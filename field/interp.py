@@ -23,18 +23,18 @@ integer cell indices: pose gradients reach the field this way.
 
 from __future__ import annotations
 
-from typing import Literal, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 
+from lrslam.field.config import Sampler
 from lrslam.field.cpu_ops import numba_available, planes_sum, use_numba
 from lrslam.field.grid import cell_and_fraction
 
 __all__ = ["Sampler", "resolve_sampler", "cell_and_fraction", "sample_lines", "sample_plane", "sample_plane_sum",
            "weighted_rows", "lerp_row_diff", "scatter_weighted_"]
 
-Sampler = Literal["auto", "gather", "ebag", "grid_sample", "numba"]
 
 
 def resolve_sampler(sampler: Sampler, device: torch.device | str) -> str:

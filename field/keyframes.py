@@ -1,7 +1,7 @@
 """Keyframe database of the mapper and ESLAM's overlap-based window selection (``keyframe_selection_overlap``).
 
-A keyframe keeps its colour and depth as tensors (all pixels, or a random subset to save memory) and its
-current pose estimate ``T_w_c`` (4x4 float64, moved by joint mapping and by pose-graph corrections).
+A keyframe keeps its colour and depth as tensors (all pixels, or a random subset to save memory). It keeps
+no pose: the pipeline's trajectory owns every keyframe pose and hands the mapper the ones it needs.
 """
 
 from __future__ import annotations
@@ -20,21 +20,19 @@ __all__ = ["ViewPixels", "KeyframeStore", "select_overlapping"]
 class ViewPixels:
     """Pixels of one view available to the mapper.
 
-    frame_id: the caller's frame index. T_w_c: (4, 4) float64 pose. width: image width (to decode indices).
+    frame_id: the caller's frame index. width: image width (to decode indices).
     index: (P,) int64 flat pixel indices ``row * W + col``, or None when all H*W pixels are kept in order.
     rgb: (P, 3) uint8. depth: (P,) float32 metres (0 = invalid).
     """
 
     frame_id: int
-    T_w_c: np.ndarray
     width: int
     index: torch.Tensor | None
     rgb: torch.Tensor
     depth: torch.Tensor
 
     @classmethod
-    def from_images(cls, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray,
-                    n_pixels: int | None = None, generator: torch.Generator | None = None) -> "ViewPixels":
+    def from_images(cls, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, n_pixels: int | None = None, generator: torch.Generator | None = None) -> "ViewPixels":
         """From (H, W, 3) uint8 and (H, W) depth tensors; ``n_pixels`` keeps a random subset (without repeats)."""
         h, w = depth.shape
         rgb_f, depth_f = rgb.reshape(-1, 3), depth.reshape(-1)
@@ -42,7 +40,7 @@ class ViewPixels:
         if n_pixels is not None and n_pixels < h * w:
             index = torch.randperm(h * w, generator=generator)[:n_pixels].to(depth.device)
             rgb_f, depth_f = rgb_f[index], depth_f[index]
-        return cls(frame_id, np.asarray(T_w_c, dtype=np.float64).copy(), w, index, rgb_f.clone(), depth_f.clone())
+        return cls(frame_id, w, index, rgb_f.clone(), depth_f.clone())
 
     def sample(self, n: int, view_slot: int, generator: torch.Generator) -> PixelBatch:
         """``n`` random pixels (with replacement, as ESLAM) tagged with ``view_slot`` as their frame index."""
@@ -74,16 +72,9 @@ class KeyframeStore:
     def ids(self) -> list[int]:
         return list(self._frames)
 
-    def poses(self) -> dict[int, np.ndarray]:
-        """Keyframe poses by frame id (copies, (4, 4) float64)."""
-        return {k: v.T_w_c.copy() for k, v in self._frames.items()}
-
-    def set_pose(self, frame_id: int, T_w_c: np.ndarray) -> None:
-        self._frames[frame_id].T_w_c = np.asarray(T_w_c, dtype=np.float64).copy()
-
     def state(self) -> dict:
         """Serialisable content (numpy arrays)."""
-        return {k: {"T_w_c": v.T_w_c, "width": v.width, "rgb": v.rgb.cpu().numpy(), "depth": v.depth.cpu().numpy(),
+        return {k: {"width": v.width, "rgb": v.rgb.cpu().numpy(), "depth": v.depth.cpu().numpy(),
                     "index": None if v.index is None else v.index.cpu().numpy()} for k, v in self._frames.items()}
 
     @classmethod
@@ -91,7 +82,7 @@ class KeyframeStore:
         store = cls()
         for k, s in state.items():
             idx = None if s["index"] is None else torch.as_tensor(s["index"], device=device)
-            store.add(ViewPixels(int(k), np.asarray(s["T_w_c"], dtype=np.float64), int(s["width"]), idx,
+            store.add(ViewPixels(int(k), int(s["width"]), idx,
                                  torch.as_tensor(s["rgb"], device=device), torch.as_tensor(s["depth"], device=device)))
         return store
 

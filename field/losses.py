@@ -14,24 +14,14 @@ from __future__ import annotations
 
 import torch
 
-from lrslam.config import StrictModel
+from lrslam.field.config import MAPPING_WEIGHTS, TRACKING_WEIGHTS, LossWeights
 from lrslam.field.render import RenderResult
 
 __all__ = ["LossWeights", "TRACKING_WEIGHTS", "MAPPING_WEIGHTS", "masked_mean", "sdf_losses", "rendering_loss"]
 
 
-class LossWeights(StrictModel):
-    """Loss weights (ESLAM configs). Defaults: tracking 10 / 200 / 50 / 1 / 5."""
-
-    free_space: float = 10.0
-    center: float = 200.0
-    tail: float = 50.0
-    depth: float = 1.0
-    colour: float = 5.0
 
 
-TRACKING_WEIGHTS = LossWeights()
-MAPPING_WEIGHTS = LossWeights(free_space=5.0, center=200.0, tail=10.0, depth=0.1, colour=5.0)
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,11 @@ keyframes, on the poses of all window views except the oldest (lr 0.001), the cu
 first frame is fitted alone for ``first_iters`` iterations with all learning rates x ``lr_first_factor``.
 
 ``remap`` re-fits the field alone (poses fixed) over chosen keyframes, e.g. after a pose graph moved them.
+
+The mapper keeps keyframe *pixels* only: every pose comes in as an argument (the pipeline's trajectory owns
+them) and the optimised ones go back out as return values. A window pose that joint mapping moves further than
+``max_pose_step`` / ``max_pose_step_deg`` in one round, or out of the bound, is reverted (divergence guard,
+counted in :attr:`Mapper.reverted_poses`).
 """
 
 from __future__ import annotations
@@ -17,51 +22,25 @@ import logging
 import numpy as np
 import torch
 
-from lrslam.config import StrictModel
+from lrslam.geometry import is_valid_pose, pose_error
+
+from lrslam.field.config import MapperConfig
 from lrslam.field.keyframes import KeyframeStore, ViewPixels, select_overlapping
-from lrslam.field.losses import MAPPING_WEIGHTS, LossWeights, rendering_loss
+from lrslam.field.losses import rendering_loss
 from lrslam.field.model import SceneModel
-from lrslam.field.poses import PoseParameterisation, PoseParams
+from lrslam.field.poses import PoseParams
 from lrslam.field.rays import PixelBatch, camera_directions, ray_exit_depth, world_rays
 from lrslam.field.render import RenderConfig, render_rays
 
-__all__ = ["MapperConfig", "Mapper"]
+__all__ = ["MapperConfig", "Mapper", "depth_error"]
 
 log = logging.getLogger(__name__)
 
 
-class MapperConfig(StrictModel):
-    """Mapping settings. Defaults: ESLAM on Replica (15 iterations x 4000 pixels; first frame 1000 iterations
-    at 5x learning rates; window 20; joint pose optimisation once more than 4 keyframes exist).
-
-    lr_encoding / lr_decoder: Adam lrs of the feature lines/planes and of the MLPs + beta. lr_pose_rot /
-    lr_pose_trans: window-pose lrs (ESLAM ``joint_opt_cam_lr``; rotation in quaternion units, see
-    :mod:`.poses`). keyframe_pixels: keep only this many random pixels per keyframe (None = all).
-    remap_iters / remap_views: defaults of :meth:`Mapper.remap` (iterations; views sampled per iteration).
-    """
-
-    iters: int = 15
-    n_rays: int = 4000
-    first_iters: int = 1000
-    lr_first_factor: float = 5.0
-    lr_encoding: float = 0.005
-    lr_decoder: float = 0.001
-    joint_opt: bool = True
-    joint_opt_min_keyframes: int = 5
-    lr_pose_rot: float = 0.001
-    lr_pose_trans: float = 0.001
-    pose_parameterisation: PoseParameterisation = "quat"
-    window_size: int = 20
-    overlap_pixels: int = 50
-    weights: LossWeights = MAPPING_WEIGHTS
-    keyframe_pixels: int | None = None
-    remap_iters: int = 30
-    remap_views: int = 20
-    max_bad_steps: int = 3
 
 
 class Mapper:
-    """Owns the keyframe database and optimises the field (and window poses) of a :class:`SceneModel`.
+    """Owns the keyframe pixel database and optimises the field (and window poses) of a :class:`SceneModel`.
 
     Args:
         model: the scene model (optimised in place). K: (3, 3) intrinsics; height, width: image size (pixels).
@@ -77,83 +56,111 @@ class Mapper:
         self.keyframes = KeyframeStore()
         self.gen = generator if generator is not None else torch.Generator().manual_seed(seed)
         self.rng = np.random.default_rng(seed)
+        self.reverted_poses = 0
         self._Kt = torch.tensor(self.K, dtype=torch.float32, device=model.device)
 
     # ------------------------------------------------------------------------------------------ public steps
     def initialise(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray) -> dict:
-        """Fit the field to the first frame (pose fixed) and store it as keyframe. rgb (H, W, 3) uint8 and depth
-        (H, W) metres tensors on the model's device. Returns stats (iterations, final loss terms)."""
-        view = ViewPixels.from_images(frame_id, rgb, depth, T_w_c)
-        stats = self._optimise([view], [False], self.cfg.first_iters, self.cfg.lr_first_factor)
-        self.keyframes.add(self._keyframe(frame_id, rgb, depth, T_w_c))
+        """Fit the field to the first frame (pose ``T_w_c`` fixed) and store it as keyframe. rgb (H, W, 3) uint8
+        and depth (H, W) metres tensors on the model's device. Returns stats (iterations, final loss terms)."""
+        view = ViewPixels.from_images(frame_id, rgb, depth)
+        _, stats = self._optimise([view], [np.asarray(T_w_c, dtype=np.float64)], [False], self.cfg.first_iters,
+                                  self.cfg.lr_first_factor)
+        self.keyframes.add(self._keyframe(frame_id, rgb, depth))
         return stats
 
-    def map(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray, add_keyframe: bool,
+    def map(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray,
+            keyframe_poses: dict[int, np.ndarray], add_keyframe: bool,
             depth_np: np.ndarray) -> tuple[dict[int, np.ndarray], dict]:
-        """One mapping round for the current frame (tensors as in :meth:`initialise`; ``depth_np`` the same
-        depth as numpy, for the window selection).
+        """One mapping round for the current frame at ``T_w_c`` (tensors as in :meth:`initialise`; ``depth_np``
+        the same depth as numpy, for the window selection). ``keyframe_poses``: the current ``T_w_c`` of every
+        stored keyframe, by frame id (from the trajectory's owner).
 
         Returns:
             (poses by frame id of every view whose pose was optimised, the current frame always included;
-            stats dict). Adds the frame as keyframe (with its optimised pose) when ``add_keyframe``.
+            stats dict with ``window``, ``reverted``). Adds the frame as keyframe when ``add_keyframe``.
         """
         # 1. Window: overlapping keyframes + the last two + the current frame.
-        ids = self.keyframes.ids()
+        ids = [k for k in self.keyframes.ids() if k in keyframe_poses]
         last_two = ids[-2:]
-        older = {k: T for k, T in self.keyframes.poses().items() if k not in last_two}
+        older = {k: keyframe_poses[k] for k in ids if k not in last_two}
         chosen = select_overlapping(older, depth_np, T_w_c, self.K, self.cfg.window_size - 1, self.rng,
                                     n_pixels=self.cfg.overlap_pixels)
         window = sorted(set(chosen) | set(last_two))
-        views = [self.keyframes.get(k) for k in window] + [ViewPixels.from_images(frame_id, rgb, depth, T_w_c)]
+        views = [self.keyframes.get(k) for k in window] + [ViewPixels.from_images(frame_id, rgb, depth)]
+        poses = [np.asarray(keyframe_poses[k], dtype=np.float64) for k in window] + [
+            np.asarray(T_w_c, dtype=np.float64)]
         # 2. Joint pose optimisation (ESLAM: once more than 4 keyframes exist); the oldest view stays fixed.
         joint = self.cfg.joint_opt and len(self.keyframes) >= self.cfg.joint_opt_min_keyframes and len(views) > 1
-        optimise = [joint and i > 0 for i in range(len(views))]
         first_id = ids[0] if ids else None
-        optimise = [o and v.frame_id != first_id for o, v in zip(optimise, views)]
-        stats = self._optimise(views, optimise, self.cfg.iters, 1.0)
-        # 3. Write back.
-        out = {v.frame_id: v.T_w_c.copy() for v, o in zip(views, optimise) if o}
-        for k in window:
-            if k in out:
-                self.keyframes.set_pose(k, out[k])
-        T_cur = out.get(frame_id, np.asarray(T_w_c, dtype=np.float64).copy())
-        out[frame_id] = T_cur
+        optimise = [joint and i > 0 and v.frame_id != first_id for i, v in enumerate(views)]
+        new_poses, stats = self._optimise(views, poses, optimise, self.cfg.iters, 1.0)
+        # 3. Divergence guard, then hand back the optimised poses.
+        out, reverted = {}, 0
+        for v, T_old, T_new, o in zip(views, poses, new_poses, optimise):
+            if not o:
+                continue
+            if self._plausible(T_old, T_new):
+                out[v.frame_id] = T_new
+            else:
+                reverted += 1
+        if reverted:
+            self.reverted_poses += reverted
+            log.warning("mapping: %d window pose(s) moved implausibly far in one round; reverted", reverted)
+        out.setdefault(frame_id, poses[-1].copy())
         if add_keyframe:
-            self.keyframes.add(self._keyframe(frame_id, rgb, depth, T_cur))
+            self.keyframes.add(self._keyframe(frame_id, rgb, depth))
         stats["window"] = window + [frame_id]
+        stats["reverted"] = reverted
         return out, stats
 
-    def remap(self, keyframe_ids: list[int] | None = None, iters: int | None = None) -> dict:
-        """Re-optimise the field only (poses fixed) over the given keyframes (None = all). Each iteration
-        samples ``n_rays`` over at most ``remap_views`` of them, chosen at random."""
-        ids = self.keyframes.ids() if keyframe_ids is None else [k for k in keyframe_ids if k in self.keyframes]
-        missing = [] if keyframe_ids is None else [k for k in keyframe_ids if k not in self.keyframes]
+    def remap(self, keyframe_poses: dict[int, np.ndarray], keyframe_ids: list[int] | None = None,
+              iters: int | None = None) -> dict:
+        """Re-optimise the field only (poses fixed at ``keyframe_poses``) over the given keyframes (None = all
+        with a pose). Each iteration samples ``n_rays`` over at most ``remap_views`` of them, chosen at random,
+        with the learning rates times ``remap_lr_factor``."""
+        known = [k for k in self.keyframes.ids() if k in keyframe_poses]
+        ids = known if keyframe_ids is None else [k for k in keyframe_ids if k in known]
+        missing = [] if keyframe_ids is None else [k for k in keyframe_ids if k not in known]
         if missing:
-            log.warning("remap: ignoring unknown keyframe ids %s", missing)
+            log.warning("remap: ignoring keyframe ids without pixels or pose %s", missing)
         if not ids:
             return {"iters": 0, "loss": float("nan")}
         views = [self.keyframes.get(k) for k in ids]
+        poses = [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids]
         n_iters = self.cfg.remap_iters if iters is None else iters
-        return self._optimise(views, [False] * len(views), n_iters, 1.0, views_per_iter=self.cfg.remap_views)
+        _, stats = self._optimise(views, poses, [False] * len(views), n_iters, self.cfg.remap_lr_factor,
+                                  views_per_iter=self.cfg.remap_views)
+        return stats
 
     # ------------------------------------------------------------------------------------------ internals
-    def _keyframe(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray) -> ViewPixels:
-        return ViewPixels.from_images(frame_id, rgb, depth, T_w_c, self.cfg.keyframe_pixels, self.gen)
+    def _keyframe(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor) -> ViewPixels:
+        return ViewPixels.from_images(frame_id, rgb, depth, self.cfg.keyframe_pixels, self.gen)
 
-    def _optimise(self, views: list[ViewPixels], optimise_pose: list[bool], iters: int, lr_factor: float,
-                  views_per_iter: int | None = None) -> dict:
-        """Adam on the field (and the flagged views' poses, written back into ``views[i].T_w_c``)."""
+    def _plausible(self, T_old: np.ndarray, T_new: np.ndarray) -> bool:
+        if not is_valid_pose(T_new, tol=1e-3):
+            return False
+        d_t, d_r = pose_error(T_old, T_new)
+        b, m = self.model.bound_np, self.cfg.bound_margin
+        inside = bool(np.all(T_new[:3, 3] >= b[:, 0] - m) and np.all(T_new[:3, 3] <= b[:, 1] + m))
+        return d_t <= self.cfg.max_pose_step and d_r <= self.cfg.max_pose_step_deg and inside
+
+    def _optimise(self, views: list[ViewPixels], poses_in: list[np.ndarray], optimise_pose: list[bool], iters: int,
+                  lr_factor: float, views_per_iter: int | None = None) -> tuple[list[np.ndarray], dict]:
+        """Adam on the field (and the flagged views' poses). ``poses_in``: (4, 4) ``T_w_c`` per view. Returns
+        (the poses after optimisation, copies, unflagged ones unchanged; stats)."""
         model, cfg, dev = self.model, self.cfg, self.model.device
         groups = [{"params": model.encoding_parameters(), "lr": cfg.lr_encoding * lr_factor},
                   {"params": model.decoder_parameters(), "lr": cfg.lr_decoder * lr_factor}]
+        poses_out = [np.array(T, dtype=np.float64) for T in poses_in]
         opt_idx = [i for i, o in enumerate(optimise_pose) if o]
         pose = None
         if opt_idx:
-            pose = PoseParams(np.stack([views[i].T_w_c for i in opt_idx]), cfg.pose_parameterisation, dev)
+            pose = PoseParams(np.stack([poses_out[i] for i in opt_idx]), cfg.pose_parameterisation, dev)
             groups += [{"params": [pose.rotation], "lr": cfg.lr_pose_rot},
                        {"params": [pose.translation], "lr": cfg.lr_pose_trans}]
         opt = torch.optim.Adam(groups)
-        fixed = torch.tensor(np.stack([v.T_w_c for v in views]), dtype=torch.float32, device=dev)
+        fixed = torch.tensor(np.stack(poses_out), dtype=torch.float32, device=dev)
         slot = torch.tensor(opt_idx, dtype=torch.long, device=dev)
         bad, done, last_loss, last_terms = 0, 0, None, {}
         for it in range(iters):
@@ -182,7 +189,8 @@ class Mapper:
                             cfg.max_bad_steps)
                 if bad >= cfg.max_bad_steps:
                     log.warning("mapping: aborted after %d non-finite losses; poses unchanged", bad)
-                    return {"iters": done, "loss": float("nan"), "aborted": True}
+                    return [np.array(T, dtype=np.float64) for T in poses_in], {
+                        "iters": done, "loss": float("nan"), "aborted": True}
                 continue
             loss.backward()
             opt.step()
@@ -192,8 +200,31 @@ class Mapper:
         if pose is not None:
             if pose.finite():
                 for i, T in zip(opt_idx, pose.numpy()):
-                    views[i].T_w_c = T
+                    poses_out[i] = T
             else:
                 log.warning("mapping: window poses became non-finite; keeping the previous poses")
         stats = {"iters": done, "loss": float("nan") if last_loss is None else float(last_loss)}
-        return stats | {k: float(v) for k, v in last_terms.items()}
+        return poses_out, stats | {k: float(v) for k, v in last_terms.items()}
+
+
+@torch.no_grad()
+def depth_error(model: SceneModel, views: list[ViewPixels], poses: list[np.ndarray], K: np.ndarray,
+                render: RenderConfig, n_rays: int, generator: torch.Generator) -> float:
+    """Mean |rendered - sensor| depth (metres) over ``n_rays`` random valid pixels spread over ``views`` seen from
+    ``poses`` ((4, 4) ``T_w_c`` each), rendered without jitter; NaN without usable rays."""
+    if not views:
+        return float("nan")
+    dev = model.device
+    per_view = max(1, n_rays // len(views))
+    batch = PixelBatch.cat([v.sample(per_view, i, generator) for i, v in enumerate(views)])
+    batch = batch.select(batch.depth > 0)
+    Kt = torch.tensor(np.asarray(K), dtype=torch.float32, device=dev)
+    T = torch.tensor(np.stack(poses), dtype=torch.float32, device=dev)
+    o, d = world_rays(camera_directions(batch.u, batch.v, Kt), T, batch.frame)
+    inside = ray_exit_depth(o, d, model.bound) >= batch.depth
+    if not bool(inside.any()):
+        return float("nan")
+    with model.frozen():
+        r = render_rays(model, o[inside], d[inside], batch.depth[inside], model.truncation, render, generator,
+                        jitter=False)
+    return float((r.depth - batch.depth[inside]).abs().mean())

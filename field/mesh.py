@@ -15,12 +15,11 @@ With ``MapperConfig.keyframe_pixels`` set, keyframes keep only some pixels and c
 from __future__ import annotations
 
 import logging
-from typing import Literal
 
 import numpy as np
 import torch
 
-from lrslam.config import StrictModel
+from lrslam.field.config import MeshConfig
 from lrslam.errors import InputError
 from lrslam.field.keyframes import ViewPixels
 from lrslam.field.model import SceneModel
@@ -30,15 +29,6 @@ __all__ = ["MeshConfig", "extract_mesh", "depth_image", "observed_box", "seen_ma
 log = logging.getLogger(__name__)
 
 
-class MeshConfig(StrictModel):
-    """resolution: marching-cubes voxel in metres (ESLAM 0.01). chunk: points per field query.
-    cull / cull_margin (metres): see the module doc. crop_to_observed: evaluate only around observations."""
-
-    resolution: float = 0.01
-    chunk: int = 262_144
-    cull: Literal["none", "frustum", "observed"] = "frustum"
-    cull_margin: float = 0.05
-    crop_to_observed: bool = True
 
 
 def depth_image(view: ViewPixels, height: int) -> np.ndarray:
@@ -51,34 +41,34 @@ def depth_image(view: ViewPixels, height: int) -> np.ndarray:
     return img.reshape(height, view.width)
 
 
-def observed_box(views: list[ViewPixels], K: np.ndarray, height: int, margin: float,
+def observed_box(views: list[ViewPixels], poses: list[np.ndarray], K: np.ndarray, height: int, margin: float,
                  step: int = 4) -> np.ndarray | None:
-    """(3, 2) axis-aligned box (metres) around the back-projected depth of the views (every ``step``-th pixel),
-    grown by ``margin``; None when no depth is valid."""
+    """(3, 2) axis-aligned box (metres) around the back-projected depth of the views (at ``poses``, (4, 4)
+    ``T_w_c`` each; every ``step``-th pixel), grown by ``margin``; None when no depth is valid."""
     pts = []
-    for v in views:
+    for v, T in zip(views, poses):
         d = depth_image(v, height)[::step, ::step]
         rows, cols = np.nonzero(d > 0)
         if len(rows) == 0:
             continue
         z = d[rows, cols]
         pc = np.stack([(cols * step - K[0, 2]) / K[0, 0] * z, (rows * step - K[1, 2]) / K[1, 1] * z, z], -1)
-        pts.append(pc @ v.T_w_c[:3, :3].T + v.T_w_c[:3, 3])
-        pts.append(v.T_w_c[:3, 3][None])
+        pts.append(pc @ T[:3, :3].T + T[:3, 3])
+        pts.append(T[:3, 3][None])
     if not pts:
         return None
     p = np.concatenate(pts)
     return np.stack([p.min(0) - margin, p.max(0) + margin], axis=1)
 
 
-def seen_mask(points: np.ndarray, views: list[ViewPixels], K: np.ndarray, height: int, margin: float,
-              near_surface: bool) -> np.ndarray:
-    """(V,) bool: which world points (V, 3) some view sees (see the module doc for the rule)."""
+def seen_mask(points: np.ndarray, views: list[ViewPixels], poses: list[np.ndarray], K: np.ndarray, height: int,
+              margin: float, near_surface: bool) -> np.ndarray:
+    """(V,) bool: which world points (V, 3) some view (at ``poses``, (4, 4) ``T_w_c``) sees (see the module doc
+    for the rule)."""
     seen = np.zeros(len(points), dtype=bool)
-    for v in views:
+    for v, T in zip(views, poses):
         d_img = depth_image(v, height)
         h, w = d_img.shape
-        T = v.T_w_c
         pc = (points - T[:3, 3]) @ T[:3, :3]  # world -> camera: R^T (p - t)
         z = pc[:, 2]
         front = z > 1e-6
@@ -116,12 +106,13 @@ def _sdf_volume(model: SceneModel, axes: list[np.ndarray], chunk: int) -> np.nda
 
 
 @torch.no_grad()
-def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, height: int,
+def extract_mesh(model: SceneModel, views: list[ViewPixels], poses: list[np.ndarray], K: np.ndarray, height: int,
                  cfg: MeshConfig = MeshConfig(), resolution: float | None = None):
     """Marching cubes on the zero level set of the SDF.
 
     Args:
-        model: the scene model. views: keyframes (poses + depth) for cropping and culling. K: (3, 3).
+        model: the scene model. views: keyframes (depth) for cropping and culling, seen from ``poses``
+        ((4, 4) ``T_w_c`` each, same order). K: (3, 3).
         height: image height (pixels). cfg: settings. resolution: overrides ``cfg.resolution`` (metres).
     Returns:
         ``trimesh.Trimesh`` in world metres with uint8 RGBA vertex colours (empty when no surface is found).
@@ -135,7 +126,7 @@ def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, heig
     # 1. Region and grid.
     box = model.bound_np.copy()
     if cfg.crop_to_observed and views:
-        obs = observed_box(views, K, height, model.truncation + 2 * res)
+        obs = observed_box(views, poses, K, height, model.truncation + 2 * res)
         if obs is not None:
             box = np.stack([np.maximum(box[:, 0], obs[:, 0]), np.minimum(box[:, 1], obs[:, 1])], axis=1)
     axes = [np.arange(lo, hi + 0.5 * res, res) for lo, hi in box]
@@ -153,7 +144,7 @@ def extract_mesh(model: SceneModel, views: list[ViewPixels], K: np.ndarray, heig
     verts = box[:, 0] + verts * res
     # 4. Cull faces not observed by any keyframe.
     if cfg.cull != "none" and views:
-        keep_v = seen_mask(verts, views, K, height, cfg.cull_margin, near_surface=cfg.cull == "observed")
+        keep_v = seen_mask(verts, views, poses, K, height, cfg.cull_margin, near_surface=cfg.cull == "observed")
         faces = faces[keep_v[faces].all(axis=1)]
     mesh = trimesh.Trimesh(verts, faces, process=False)
     mesh.remove_unreferenced_vertices()

@@ -16,47 +16,15 @@ import numpy as np
 import torch
 from torch import nn
 
-from lrslam.config import StrictModel
-from lrslam.errors import InputError
+from lrslam.field.config import _ALIASES, _KINDS, PRESETS, SceneModelConfig  # noqa: F401 (re-export)
 from lrslam.field.decoders import ColourDecoder, SDFDecoder
-from lrslam.field.encodings import EncodingConfig, build_encoding
+from lrslam.field.encodings import build_encoding
 from lrslam.field.grid import grow_bound
 
 __all__ = ["SceneModelConfig", "SceneModel", "PRESETS"]
 
-_GEOMETRY = {"coarse_res": 0.24, "fine_res": 0.06, "rank": 2}
-_APPEARANCE = {"coarse_res": 0.24, "fine_res": 0.03, "rank": 16}
-_KINDS = {"cp-sa": ("cp", "sa"), "cp-cp": ("cp", "cp"), "sa-sa": ("sa", "sa"), "sa-cp": ("sa", "cp"),
-          "triplane": ("triplane", "triplane")}
-_ALIASES = {"lrslam": "cp-sa", "eslam": "triplane"}
-PRESETS = tuple(_KINDS) + tuple(_ALIASES)
 
 
-class SceneModelConfig(StrictModel):
-    """Scene representation. Defaults: LRSLAM (paper Sec. 4.1 implementation details).
-
-    geometry / appearance: the two encodings. hidden: MLP hidden width (16). truncation: TSDF truncation T in
-    metres (ESLAM 0.06). beta_init: initial sharpness of the density ``beta * sigmoid(-beta * sdf)`` (10).
-    learnable_beta: ESLAM learns it on Replica/ScanNet, fixes it on TUM.
-    """
-
-    geometry: EncodingConfig = EncodingConfig(kind="cp", **_GEOMETRY)
-    appearance: EncodingConfig = EncodingConfig(kind="sa", **_APPEARANCE)
-    hidden: int = 16
-    truncation: float = 0.06
-    beta_init: float = 10.0
-    learnable_beta: bool = True
-
-    @classmethod
-    def preset(cls, name: str, **overrides) -> "SceneModelConfig":
-        """A named variant: ``lrslam`` (= ``cp-sa``), ``cp-cp``, ``sa-sa``, ``sa-cp``, ``eslam`` (= ``triplane``).
-        ``overrides`` replace top-level fields (e.g. ``truncation=0.1``)."""
-        key = _ALIASES.get(name, name)
-        if key not in _KINDS:
-            raise InputError(f"unknown scene model preset {name!r}; known: {', '.join(PRESETS)}")
-        kg, ka = _KINDS[key]
-        return cls(geometry=EncodingConfig(kind=kg, **_GEOMETRY), appearance=EncodingConfig(kind=ka, **_APPEARANCE),
-                   **overrides)
 
 
 class SceneModel(nn.Module):

@@ -14,17 +14,16 @@ the same thing for either.
 
 from __future__ import annotations
 
-from typing import Literal
 
 import numpy as np
 import torch
 from torch import nn
 
+from lrslam.field.config import PoseParameterisation
 from lrslam.geometry import exp_se3, quat_to_rot, rot_to_quat
 
 __all__ = ["PoseParameterisation", "skew", "so3_exp", "se3_exp", "quat_to_matrix", "PoseParams"]
 
-PoseParameterisation = Literal["lie", "quat"]
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from lrslam.config import StrictModel
+from lrslam.field.config import RenderConfig
 from lrslam.field.rays import camera_directions, ray_exit_depth, world_rays
 from lrslam.field.sampling import depth_guided_depths, hierarchical_depths
 
@@ -23,18 +23,6 @@ __all__ = ["RenderConfig", "FieldLike", "RenderResult", "sdf_to_density", "compo
            "render_image"]
 
 
-class RenderConfig(StrictModel):
-    """Samples per ray (paper: N_s = 32 on Replica, 48 on real data; N_t = 8) and jitter.
-
-    n_stratified: samples over ``[0, 1.2 d]`` (or up to the bound when d is missing). n_importance: samples in
-    ``d +- 1.5 T`` (or drawn from coarse weights when d is missing). perturb: jitter samples within their
-    intervals during optimisation. chunk: rays per batch when rendering whole images.
-    """
-
-    n_stratified: int = 32
-    n_importance: int = 8
-    perturb: bool = True
-    chunk: int = 20_000
 
 
 class FieldLike(Protocol):

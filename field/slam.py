@@ -2,62 +2,35 @@
 numpy API (poses (4, 4) float64 ``T_w_c``, OpenCV camera; rgb (H, W, 3) uint8; depth (H, W) float32 metres,
 0 = invalid). Torch stays inside :mod:`lrslam.field`.
 
-``run_field_slam`` is the LRSLAM/ESLAM-faithful loop (constant-velocity seed, field tracking, mapping every
-``map_every`` frames, a keyframe every ``keyframe_every`` frames), used by tests and mirrored by
-``lrslam run --mode field``.
+The facade keeps no camera pose: the pipeline's trajectory owns them and passes the ones a step needs
+(``map``, ``remap``, ``extract_mesh`` take the keyframe poses as an argument); optimised poses are returned.
+The LRSLAM/ESLAM loop itself (constant-velocity seed, field tracking, mapping every N frames) is the pipeline's
+``field`` preset (:mod:`lrslam.pipeline.parts`).
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Iterable
-
 import numpy as np
 import torch
 
-from lrslam.config import StrictModel
+from lrslam.field.config import FieldSLAMConfig
 from lrslam.camera import check_intrinsics
 from lrslam.errors import InputError
-from lrslam.geometry import inv, is_valid_pose
+from lrslam.geometry import is_valid_pose
 from lrslam.field.grid import check_bound
 from lrslam.field.inputs import image_tensors, resolve_device
 from lrslam.field.keyframes import KeyframeStore
-from lrslam.field.mapper import Mapper, MapperConfig
-from lrslam.field.mesh import MeshConfig, extract_mesh
-from lrslam.field.model import SceneModel, SceneModelConfig
-from lrslam.field.render import RenderConfig
-from lrslam.field.tracker import TrackerConfig, TrackResult, track
+from lrslam.field.mapper import Mapper
+from lrslam.field.mesh import extract_mesh
+from lrslam.field.model import SceneModel
+from lrslam.field.tracker import TrackResult, track
 
-__all__ = ["FieldSLAMConfig", "FieldSLAM", "run_field_slam"]
+__all__ = ["FieldSLAMConfig", "FieldSLAM"]
 
 log = logging.getLogger(__name__)
 
 
-class FieldSLAMConfig(StrictModel):
-    """Everything the field needs. Defaults: the paper's LRSLAM on Replica (ESLAM settings).
-    device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda:0"`` ... seed: RNG seed (pixels, jitter,
-    window selection, initial features)."""
-
-    model: SceneModelConfig = SceneModelConfig()
-    render: RenderConfig = RenderConfig()
-    tracking: TrackerConfig = TrackerConfig()
-    mapping: MapperConfig = MapperConfig()
-    mesh: MeshConfig = MeshConfig()
-    device: str = "auto"
-    seed: int = 0
-
-    @classmethod
-    def cpu_small(cls, **overrides) -> "FieldSLAMConfig":
-        """A CPU-sized variant (same model, fewer rays and iterations, coarser mesh) for tests and laptops.
-        ``overrides`` replace top-level sections."""
-        base = dict(
-            render=RenderConfig(n_stratified=24, n_importance=8),
-            tracking=TrackerConfig(iters=12, n_rays=400, ignore_edge_h=4, ignore_edge_w=4),
-            mapping=MapperConfig(iters=15, n_rays=800, first_iters=100, window_size=8, remap_iters=20),
-            mesh=MeshConfig(resolution=0.03),
-            device="cpu",
-        )
-        return cls(**(base | overrides))
 
 
 class FieldSLAM:
@@ -102,8 +75,9 @@ class FieldSLAM:
         return track(self.model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, self.gen)
 
     def map(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
-            add_keyframe: bool) -> dict[int, np.ndarray]:
-        """Joint field + window-pose optimisation around the current frame.
+            keyframe_poses: dict[int, np.ndarray], add_keyframe: bool) -> dict[int, np.ndarray]:
+        """Joint field + window-pose optimisation around the current frame at ``T_w_c``; ``keyframe_poses``
+        are the current ``T_w_c`` of the keyframes (by frame id, from the trajectory's owner).
 
         Returns the optimised poses by frame id (window keyframes whose pose moved, the current frame always).
         A frame without valid depth is not mapped (logged; returns ``{frame_id: T_w_c}``) and not added.
@@ -114,33 +88,44 @@ class FieldSLAM:
         if not bool((depth_t > 0).any()):
             log.warning("frame %d: no valid depth; not mapped, not added as keyframe", frame_id)
             return {frame_id: T}
-        poses, _stats = self.mapper.map(frame_id, rgb_t, depth_t, T, add_keyframe, depth_t.cpu().numpy())
+        poses, _stats = self.mapper.map(frame_id, rgb_t, depth_t, T, keyframe_poses, add_keyframe,
+                                        depth_t.cpu().numpy())
         return poses
 
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Current keyframe poses by frame id ((4, 4) float64 copies)."""
-        return self.mapper.keyframes.poses()
+    def keyframe_ids(self) -> list[int]:
+        """Frame ids of the stored keyframes (pixels), in insertion order."""
+        return self.mapper.keyframes.ids()
 
-    def set_keyframe_poses(self, poses: dict[int, np.ndarray]) -> None:
-        """Replace keyframe poses (e.g. after pose-graph optimisation); unknown ids are ignored (logged)."""
-        unknown = []
-        for k, T in poses.items():
-            if k in self.mapper.keyframes:
-                self.mapper.keyframes.set_pose(k, self._pose(T))
-            else:
-                unknown.append(k)
-        if unknown:
-            log.debug("set_keyframe_poses: ids %s are not field keyframes", unknown)
+    @property
+    def reverted_poses(self) -> int:
+        """Window poses the mapping divergence guard reverted so far."""
+        return self.mapper.reverted_poses
 
-    def remap(self, keyframe_ids: list[int] | None = None, iters: int | None = None) -> dict:
-        """Field-only re-optimisation (poses fixed) over the given keyframes (None = all)."""
+    def remap(self, keyframe_poses: dict[int, np.ndarray], keyframe_ids: list[int] | None = None,
+              iters: int | None = None) -> dict:
+        """Field-only re-optimisation with the keyframes fixed at ``keyframe_poses`` (e.g. after a pose-graph
+        correction), over ``keyframe_ids`` (None = all)."""
         self._require_init()
-        return self.mapper.remap(keyframe_ids, iters)
+        return self.mapper.remap({k: self._pose(T) for k, T in keyframe_poses.items()}, keyframe_ids, iters)
 
-    def extract_mesh(self, resolution: float | None = None):
-        """Marching-cubes mesh of the field (world metres, vertex colours), culled to what keyframes saw."""
-        views = [self.mapper.keyframes.get(k) for k in self.mapper.keyframes.ids()]
-        return extract_mesh(self.model, views, self.K, self.height, self.cfg.mesh, resolution)
+    def extract_mesh(self, keyframe_poses: dict[int, np.ndarray], resolution: float | None = None):
+        """Marching-cubes mesh of the field (world metres, vertex colours), culled to what the keyframes (at
+        ``keyframe_poses``) saw."""
+        ids = [k for k in self.mapper.keyframes.ids() if k in keyframe_poses]
+        views = [self.mapper.keyframes.get(k) for k in ids]
+        poses = [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids]
+        return extract_mesh(self.model, views, poses, self.K, self.height, self.cfg.mesh, resolution)
+
+    def depth_error(self, keyframe_poses: dict[int, np.ndarray], keyframe_ids: list[int] | None = None,
+                    n_rays: int = 2000) -> float:
+        """Mean absolute difference (metres) between rendered and sensor depth over random pixels of the given
+        keyframes (None = all) at ``keyframe_poses``: how well the surface agrees with those poses."""
+        from lrslam.field.mapper import depth_error
+
+        ids = [k for k in (keyframe_ids or self.mapper.keyframes.ids()) if k in keyframe_poses]
+        return depth_error(self.model, [self.mapper.keyframes.get(k) for k in ids],
+                           [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids], self.K, self.cfg.render,
+                           n_rays, torch.Generator().manual_seed(0))
 
     def parameter_count(self) -> dict[str, int]:
         """{"geometry", "appearance", "decoders", "total" (= encodings, as the paper)}."""
@@ -149,7 +134,7 @@ class FieldSLAM:
     # ------------------------------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """Run state as plain Python/numpy: config, bound, intrinsics, field tensors (decoders, beta included),
-        keyframes (ids, poses, pixels) and RNG state. Restore with :meth:`load_state_dict`."""
+        keyframe pixels (poses belong to the trajectory) and RNG state. Restore with :meth:`load_state_dict`."""
         return {
             "config": self.cfg.model_dump(mode="json"),
             "bound": self.model.bound_np.copy(),
@@ -183,32 +168,3 @@ class FieldSLAM:
         if not is_valid_pose(T, tol=1e-3):
             raise InputError("camera pose must be a finite 4x4 rigid transform")
         return T.copy()
-
-
-def run_field_slam(frames: Iterable[tuple[np.ndarray, np.ndarray]], cfg: FieldSLAMConfig, bound: np.ndarray,
-                   K: np.ndarray, height: int, width: int, T_w_c_first: np.ndarray, map_every: int = 4,
-                   keyframe_every: int = 4, slam: FieldSLAM | None = None) -> tuple[np.ndarray, FieldSLAM]:
-    """Field-only SLAM over ``(rgb, depth)`` frames (ESLAM's loop, sequential).
-
-    1. frame 0: initialise at ``T_w_c_first``; 2. seed ``T_{i-1} inv(T_{i-2}) T_{i-1}`` (constant velocity);
-    3. track; 4. every ``map_every`` frames map (a keyframe every ``keyframe_every`` frames); keyframe poses
-    moved by joint mapping are written back into the trajectory (ESLAM keeps them only in its keyframe list).
-
-    Returns:
-        (poses (N, 4, 4) float64 T_w_c, the FieldSLAM object).
-    """
-    slam = slam or FieldSLAM(cfg, bound, K, height, width)
-    poses: list[np.ndarray] = []
-    for i, (rgb, depth) in enumerate(frames):
-        if i == 0:
-            slam.initialise(0, rgb, depth, T_w_c_first)
-            poses.append(np.asarray(T_w_c_first, dtype=np.float64).copy())
-            continue
-        seed = poses[-1] if i < 2 else poses[-1] @ inv(poses[-2]) @ poses[-1]
-        res = slam.track(rgb, depth, seed)
-        poses.append(res.T_w_c)
-        if i % map_every == 0:
-            out = slam.map(i, rgb, depth, poses[-1], add_keyframe=i % keyframe_every == 0)
-            for fid, T in out.items():
-                poses[fid] = T
-    return np.stack(poses), slam

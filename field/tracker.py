@@ -7,6 +7,14 @@ loss (tracking weights). The pose with the lowest loss seen is returned (ESLAM k
 
 Failures never raise: no valid depth, a seed outside the bound, no usable rays, a non-finite loss or a result
 that moved implausibly far from the seed give ``ok=False`` with the *seed* pose and a one-line reason (logged).
+
+After the iterations one fixed set of rays (no jitter) renders the seed and the refined pose: the two losses
+are compared on the same rays (``accept_if_better`` keeps the seed unless the refinement lowers that loss), and
+the chosen pose's information comes from the same rays (:func:`pose_information`): the Gauss-Newton Hessian
+``sum_k g_k g_k^T / sigma^2`` of the rendered-depth residuals ``r_k = D_k(T exp(xi)) - d_k``, with the
+per-ray gradients ``g_k = d r_k / d xi`` of a right perturbation ``xi = [rotation (rad), translation (m)]``
+(camera frame, GTSAM's convention) taken from one backward pass through the renderer, ``sigma^2`` the mean
+squared residual, and the ray count saturating at ``information_rays`` (neighbouring rays share errors).
 """
 
 from __future__ import annotations
@@ -17,53 +25,31 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lrslam.config import StrictModel
-from lrslam.geometry import is_valid_pose, pose_error
+from lrslam.field.config import TrackerConfig
+from lrslam.geometry import diagonal_information, is_valid_pose, pose_error
 from lrslam.field.inputs import image_tensors, inside_bound
-from lrslam.field.losses import TRACKING_WEIGHTS, LossWeights, rendering_loss
+from lrslam.field.losses import rendering_loss
 from lrslam.field.model import SceneModel
-from lrslam.field.poses import PoseParameterisation, PoseParams
+from lrslam.field.poses import PoseParams
 from lrslam.field.rays import camera_directions, gather_pixels, ray_exit_depth, sample_pixels, world_rays
 from lrslam.field.render import RenderConfig, render_rays
 
-__all__ = ["TrackerConfig", "TrackResult", "track"]
+__all__ = ["TrackerConfig", "TrackResult", "track", "pose_information"]
 
 log = logging.getLogger(__name__)
 
 
-class TrackerConfig(StrictModel):
-    """Tracking settings. Defaults: ESLAM on Replica (8 iterations, 2000 pixels, lr 0.001 rotation / 0.002
-    translation, Adam betas (0.5, 0.999), 75-pixel border ignored, outliers > 10 x median depth error).
-
-    lr_rot: Adam lr of the rotation parameters (quaternion units, ~ half radians; see :mod:`.poses`).
-    lr_trans: Adam lr of the translation (metres). lr_final_factor: linear decay of both lrs to this fraction at
-    the last iteration (1 = constant, ESLAM). max_translation / max_rotation_deg: a refined pose further than
-    this from the seed counts as divergence. bound_margin: metres the camera centre may lie outside the scene
-    bound (seed and result). min_rays: fewer usable rays in an iteration skip it.
-    """
-
-    iters: int = 8
-    n_rays: int = 2000
-    lr_rot: float = 0.001
-    lr_trans: float = 0.002
-    lr_final_factor: float = 1.0
-    adam_betas: tuple[float, float] = (0.5, 0.999)
-    parameterisation: PoseParameterisation = "quat"
-    outlier_factor: float = 10.0
-    ignore_edge_h: int = 75
-    ignore_edge_w: int = 75
-    weights: LossWeights = TRACKING_WEIGHTS
-    max_translation: float = 0.5
-    max_rotation_deg: float = 30.0
-    bound_margin: float = 1.0
-    min_rays: int = 16
 
 
 @dataclass
 class TrackResult:
-    """Outcome of tracking one frame. T_w_c: (4, 4) float64, the refined pose, or the seed when ``ok`` is
-    False. loss_first / loss_best: loss at the seed and the best loss (NaN when never evaluated).
-    iters: iterations run. reason: why tracking failed ("" when ok)."""
+    """Outcome of tracking one frame. T_w_c: (4, 4) float64, the chosen pose: the refined one, or the seed when
+    ``ok`` is False or the refinement was not ``accepted``. loss_first / loss_best: loss at the seed and the best
+    loss during the iterations (NaN when never evaluated). check_seed / check_refined: the losses of the seed and
+    the refined pose on the same fixed rays (NaN when not checked). accepted: the refinement was kept.
+    information: (6, 6) information of ``T_w_c`` (right perturbation, ``[rotation, translation]``) given the
+    field, or None. n_check_rays: rays behind it. iters: iterations run. reason: why tracking failed or the
+    refinement was not kept ("" otherwise)."""
 
     T_w_c: np.ndarray
     ok: bool
@@ -71,6 +57,11 @@ class TrackResult:
     loss_best: float
     iters: int
     reason: str = ""
+    accepted: bool = False
+    check_seed: float = float("nan")
+    check_refined: float = float("nan")
+    information: np.ndarray | None = None
+    n_check_rays: int = 0
 
 
 def _fail(T_seed: np.ndarray, reason: str, loss_first: float = float("nan"), iters: int = 0) -> TrackResult:
@@ -149,7 +140,82 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         return _fail(T_seed, f"diverged: {dt:.3f} m / {dr:.1f} deg from the seed", loss_first, done)
     if not inside_bound(T_best[:3, 3], model.bound_np, cfg.bound_margin):
         return _fail(T_seed, "refined camera centre left the scene bound", loss_first, done)
-    return TrackResult(T_best, True, loss_first, loss_best, done, "")
+
+    # 6. Paired check on fixed rays: is the refinement better than the seed? How well is the pose determined?
+    with model.frozen():
+        batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
+        l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
+        l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
+        accepted = bool(np.isfinite(l_ref)) and (not cfg.accept_if_better or not np.isfinite(l_seed)
+                                                   or l_ref <= l_seed * (1.0 - cfg.accept_margin))
+        T_out = T_best if accepted else T_seed
+        reason = "" if accepted else f"refinement not better than the seed ({l_ref:.4g} vs {l_seed:.4g})"
+        info, n_info = None, 0
+        if cfg.information:
+            info, n_info = pose_information(model, batch, dirs_c, T_out, m_ref if accepted else m_seed, cfg, render)
+    return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info)
+
+
+def _check_rays(rgb_t: torch.Tensor, depth_t: torch.Tensor, Kt: torch.Tensor, cfg: TrackerConfig,
+                gen: torch.Generator):
+    """One fixed set of pixels with valid depth -> (PixelBatch, camera directions (N, 3))."""
+    h, w = depth_t.shape
+    rows, cols = sample_pixels(cfg.check_rays or cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w,
+                               depth_t.device)
+    batch = gather_pixels(rgb_t, depth_t, rows, cols, 0)
+    batch = batch.select(batch.depth > 0)
+    return batch, camera_directions(batch.u, batch.v, Kt)
+
+
+def _rays_at(T: np.ndarray, dirs_c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    Tt = torch.tensor(T, dtype=torch.float32, device=dirs_c.device)
+    return Tt[:3, 3].expand(len(dirs_c), 3), dirs_c @ Tt[:3, :3].T
+
+
+@torch.no_grad()
+def _fixed_ray_loss(model: SceneModel, batch, dirs_c: torch.Tensor, T: np.ndarray, cfg: TrackerConfig,
+                    render: RenderConfig) -> tuple[float, torch.Tensor]:
+    """Tracking loss of pose ``T`` on the fixed rays without jitter -> (loss, geometry mask (N,) of the rays
+    inside the bound and not outliers). NaN when too few rays are usable."""
+    o, d = _rays_at(T, dirs_c)
+    inside = ray_exit_depth(o, d, model.bound) >= batch.depth
+    if int(inside.sum()) < cfg.min_rays:
+        return float("nan"), inside
+    r = render_rays(model, o, d, batch.depth, model.truncation, render, torch.Generator(), jitter=False)
+    err = (batch.depth - r.depth).abs()
+    mask = inside & (err < cfg.outlier_factor * err[inside].median().clamp(min=1e-6))
+    loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, mask, mask)
+    return float(loss), mask
+
+
+def pose_information(model: SceneModel, batch, dirs_c: torch.Tensor, T_w_c: np.ndarray, mask: torch.Tensor,
+                     cfg: TrackerConfig, render: RenderConfig) -> tuple[np.ndarray, int]:
+    """Information (6, 6) of the camera pose ``T_w_c`` (4, 4) given the frozen field, from the rays ``batch``
+    (camera directions ``dirs_c`` (N, 3), ``mask`` (N,) the rays to use); see the module docstring.
+
+    Right perturbation ``T exp(xi)``, ``xi = [omega, v]``: ray origins move by ``R v`` and directions by
+    ``-R [d_c]x omega``, so with ``a_k = R^T dD_k/dd_k`` and ``b_k = R^T dD_k/do_k`` the per-ray gradient is
+    ``g_k = [d_c,k x a_k, b_k]``. Returns (information, rays used); a weak diagonal prior
+    (``information_floor_*``) keeps it positive definite when the geometry leaves a direction unconstrained.
+    """
+    floor = diagonal_information(np.radians(cfg.information_floor_rotation_deg), cfg.information_floor_translation)
+    n = int(mask.sum())
+    if n < cfg.min_rays:
+        return floor, n
+    o, d = _rays_at(T_w_c, dirs_c[mask])
+    o = o.detach().clone().requires_grad_(True)
+    d = d.detach().clone().requires_grad_(True)
+    depth = batch.depth[mask]
+    r = render_rays(model, o, d, depth, model.truncation, render, torch.Generator(), jitter=False)
+    go, gd = torch.autograd.grad(r.depth.sum(), (o, d))
+    R = torch.tensor(T_w_c[:3, :3], dtype=torch.float32, device=dirs_c.device)
+    a, b = gd @ R, go @ R                                       # rows: R^T dD/dd, R^T dD/do
+    g = torch.cat([torch.cross(dirs_c[mask], a, dim=-1), b], dim=-1).double().cpu().numpy()  # (n, 6)
+    res = (r.depth.detach() - depth).double().cpu().numpy()
+    sigma2 = max(float(np.mean(res ** 2)), 1e-6)
+    n_eff = n * cfg.information_rays / (n + cfg.information_rays)
+    H = g.T @ g / n * n_eff / sigma2
+    return 0.5 * (H + H.T) + floor, n
 
 
 def _decay(opt: torch.optim.Optimizer, base: tuple[float, ...], final: float, it: int, iters: int) -> None:

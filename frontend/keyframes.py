@@ -1,5 +1,9 @@
 """Keyframe policy: a frame becomes a keyframe when the camera has moved or turned enough since the last keyframe,
-when it sees too little of the last keyframe's view, or every ``every_n`` frames (ESLAM-style fallback).
+when it sees too little of the last keyframe's view, or every ``every_n`` frames (ESLAM-style fallback), but
+never sooner than ``min_frames`` after the last one.
+
+The policy keeps the last keyframe's (sub-sampled) depth image only; its pose is handed in by the caller (the
+pipeline's trajectory owns every pose), so a pose-graph correction can never leave a stale copy here.
 
 :func:`view_overlap` is a pure function shared by the mapper (keyframe window selection) and the pose graph
 (loop candidates).
@@ -26,10 +30,11 @@ log = logging.getLogger(__name__)
 class KeyframeConfig(StrictModel):
     """When a frame becomes a keyframe (any criterion suffices). 0 disables a criterion."""
 
-    min_translation: float = Field(0.10, ge=0, description="m moved since the last keyframe")
-    min_rotation: float = Field(10.0, ge=0, description="deg turned since the last keyframe")
-    max_overlap: float = Field(0.80, ge=0, le=1, description="a frame whose view overlap with the last keyframe "
+    min_translation: float = Field(0.15, ge=0, description="m moved since the last keyframe")
+    min_rotation: float = Field(15.0, ge=0, description="deg turned since the last keyframe")
+    max_overlap: float = Field(0.70, ge=0, le=1, description="a frame whose view overlap with the last keyframe "
                                "is below this fraction is a keyframe (needs depth and K)")
+    min_frames: int = Field(1, ge=1, description="frames at least between two keyframes")
     every_n: int = Field(0, ge=0, description="a keyframe at least every n frames (ESLAM uses 5 on Replica)")
     overlap_stride: int = Field(8, gt=0, description="pixel sub-sampling of the overlap estimate")
     occlusion_tolerance: float = Field(0.05, gt=0, description="m; with the keyframe depth, points farther "
@@ -66,78 +71,71 @@ def view_overlap(depth_a: np.ndarray, K_a: np.ndarray, T_w_a: np.ndarray, K_b: n
 
 
 @dataclass
-class _Keyframe:
+class _LastKeyframe:
     index: int
-    T_w_c: np.ndarray
     depth: np.ndarray | None  # sub-sampled by the overlap stride (with K to match), for the overlap test
     K: np.ndarray | None
 
 
 class KeyframePolicy:
-    """Decides keyframes. State: only the last keyframe (index, pose, and a sub-sampled depth map)."""
+    """Decides keyframes. State: the last keyframe's index and sub-sampled depth (no pose)."""
 
     def __init__(self, cfg: KeyframeConfig):
         self.cfg = cfg
-        self._last: _Keyframe | None = None
+        self._last: _LastKeyframe | None = None
 
     @property
     def last_keyframe_index(self) -> int | None:
         return None if self._last is None else self._last.index
 
-    def is_keyframe(self, frame_index: int, T_w_c: np.ndarray, depth: np.ndarray | None = None,
-                    K: np.ndarray | None = None, commit: bool = True) -> tuple[bool, str]:
+    def is_keyframe(self, frame_index: int, T_w_c: np.ndarray, T_w_last: np.ndarray | None,
+                    depth: np.ndarray | None = None, K: np.ndarray | None = None,
+                    commit: bool = True) -> tuple[bool, str]:
         """Whether frame ``frame_index`` at ``T_w_c`` (4x4) is a keyframe, and why (or why not).
 
-        ``depth (H, W)`` metres and ``K (3, 3)`` enable the overlap criterion. With ``commit`` (default) a
-        positive decision records the frame as the last keyframe (as :meth:`add_keyframe`).
+        ``T_w_last``: the current pose of the last keyframe (None before the first). ``depth (H, W)`` metres and
+        ``K (3, 3)`` enable the overlap criterion. With ``commit`` (default) a positive decision records the
+        frame as the last keyframe (as :meth:`add_keyframe`).
         """
         T = self._pose(T_w_c, frame_index)
-        decision, reason = self._decide(frame_index, T, depth, K)
+        decision, reason = self._decide(frame_index, T, T_w_last, depth, K)
         log.debug("frame %d: keyframe=%s (%s)", frame_index, decision, reason)
         if decision and commit:
-            self.add_keyframe(frame_index, T, depth, K)
+            self.add_keyframe(frame_index, depth, K)
         return decision, reason
 
-    def _decide(self, frame_index: int, T: np.ndarray, depth: np.ndarray | None,
+    def _decide(self, frame_index: int, T: np.ndarray, T_w_last: np.ndarray | None, depth: np.ndarray | None,
                 K: np.ndarray | None) -> tuple[bool, str]:
         c, last = self.cfg, self._last
-        if last is None:
+        if last is None or T_w_last is None:
             return True, "first keyframe"
-        d_t, d_r = pose_error(last.T_w_c, T)
+        T_last = self._pose(T_w_last, last.index)
+        gap = frame_index - last.index
+        if gap < c.min_frames:
+            return False, f"{gap} frame(s) since keyframe {last.index} < {c.min_frames}"
+        d_t, d_r = pose_error(T_last, T)
         if c.min_translation > 0 and d_t >= c.min_translation:
             return True, f"moved {d_t:.3f} m >= {c.min_translation} m"
         if c.min_rotation > 0 and d_r >= c.min_rotation:
             return True, f"turned {d_r:.1f} deg >= {c.min_rotation} deg"
-        if c.every_n > 0 and frame_index - last.index >= c.every_n:
-            return True, f"{frame_index - last.index} frames since keyframe {last.index}"
+        if c.every_n > 0 and gap >= c.every_n:
+            return True, f"{gap} frames since keyframe {last.index}"
         if c.max_overlap > 0 and depth is not None and K is not None and last.K is not None:
-            ov = self._overlap(depth, K, T)
+            ov = view_overlap(depth, K, T, last.K, T_last, last.depth.shape, last.depth, stride=c.overlap_stride,
+                              occlusion_tolerance=c.occlusion_tolerance)
             if ov < c.max_overlap:
                 return True, f"overlap {ov:.2f} < {c.max_overlap}"
             return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg, overlap {ov:.2f}"
         return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg"
 
-    def _overlap(self, depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> float:
-        last, s = self._last, self.cfg.overlap_stride
-        # The last keyframe's depth is kept sub-sampled: project into that coarse image with its own K.
-        return view_overlap(depth, K, T, last.K, last.T_w_c, last.depth.shape, last.depth, stride=s,
-                            occlusion_tolerance=self.cfg.occlusion_tolerance)
-
-    def add_keyframe(self, frame_index: int, T_w_c: np.ndarray, depth: np.ndarray | None = None,
-                     K: np.ndarray | None = None) -> None:
+    def add_keyframe(self, frame_index: int, depth: np.ndarray | None = None, K: np.ndarray | None = None) -> None:
         """Record frame ``frame_index`` as the last keyframe (forced keyframes, or after ``commit=False``)."""
-        T = self._pose(T_w_c, frame_index)
         if depth is not None and K is not None:
             s = self.cfg.overlap_stride
             d = np.ascontiguousarray(np.asarray(depth, dtype=np.float32)[::s, ::s])
-            self._last = _Keyframe(frame_index, T, d, strided_intrinsics(K, s))
+            self._last = _LastKeyframe(frame_index, d, strided_intrinsics(K, s))
         else:
-            self._last = _Keyframe(frame_index, T, None, None)
-
-    def update_pose(self, frame_index: int, T_w_c: np.ndarray) -> None:
-        """Move the last keyframe (e.g. after pose-graph optimisation); other indices are ignored."""
-        if self._last is not None and self._last.index == frame_index:
-            self._last.T_w_c = self._pose(T_w_c, frame_index)
+            self._last = _LastKeyframe(frame_index, None, None)
 
     @staticmethod
     def _pose(T_w_c: np.ndarray, frame_index: int) -> np.ndarray:

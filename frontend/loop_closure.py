@@ -10,7 +10,10 @@
    then strict fitness / RMSE / correction gates.
 
 Every rejection is logged with its reason (and kept in :attr:`LoopCloser.rejections` for the last call).
-Keyframes are stored as down-sampled copies (images only).
+Keyframes are stored as down-sampled copies (images only); their poses are handed in at each call (the
+pipeline's trajectory owns them). Each verified loop carries its *correction*: how far the registration moved
+the relative pose the current estimates predicted, so a caller can tell a real correction from a consistent
+re-observation (a rotating camera re-observes earlier keyframes all the time).
 """
 
 from __future__ import annotations
@@ -68,12 +71,13 @@ class LoopConstraint:
     information: np.ndarray
     fitness: float
     rmse: float
+    correction_m: float = 0.0
+    correction_deg: float = 0.0
 
 
 @dataclass
 class _StoredKeyframe:
     view: RGBDView
-    T_w_c: np.ndarray
     orb: np.ndarray | None
 
 
@@ -89,37 +93,39 @@ class LoopCloser:
     def __len__(self) -> int:
         return len(self._kfs)
 
-    def add_keyframe(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> None:
-        """Store keyframe ``kf_id`` (images down-sampled by ``cfg.downsample``) at pose ``T_w_c`` (4x4)."""
+    def add_keyframe(self, kf_id: int, frame: FrameLike | RGBDView) -> None:
+        """Store keyframe ``kf_id``'s images (down-sampled by ``cfg.downsample``)."""
         if kf_id in self._kfs:
             raise InputError(f"loop closure: keyframe {kf_id} added twice")
         view = self._view(frame)
-        self._kfs[kf_id] = _StoredKeyframe(view, self._pose(T_w_c, kf_id), self._orb(view))
+        self._kfs[kf_id] = _StoredKeyframe(view, self._orb(view))
         self._order.append(kf_id)
 
-    def update_poses(self, poses: dict[int, np.ndarray]) -> None:
-        """Move stored keyframes to new poses (e.g. after pose-graph optimisation); unknown ids are ignored."""
-        for kf_id, T in poses.items():
-            if kf_id in self._kfs:
-                self._kfs[kf_id].T_w_c = self._pose(T, kf_id)
+    def candidates(self, kf_id: int, frame: FrameLike | RGBDView,
+                   keyframe_poses: dict[int, np.ndarray]) -> list[tuple[int, float]]:
+        """Earlier keyframes passing the pose-proximity and overlap tests: ``[(id, overlap)]``, best first.
+        ``keyframe_poses``: current ``T_w_c`` by keyframe id, ``kf_id`` included."""
+        return self._candidates(kf_id, self._view(frame), self._poses(keyframe_poses, kf_id))
 
-    def candidates(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> list[tuple[int, float]]:
-        """Earlier keyframes passing the pose-proximity and overlap tests: ``[(id, overlap)]``, best first."""
-        return self._candidates(kf_id, self._view(frame), self._pose(T_w_c, kf_id))
+    def _poses(self, keyframe_poses: dict[int, np.ndarray], kf_id: int) -> dict[int, np.ndarray]:
+        if kf_id not in keyframe_poses:
+            raise InputError(f"loop closure: no pose given for keyframe {kf_id}")
+        return {k: self._pose(T, k) for k, T in keyframe_poses.items() if k in self._kfs or k == kf_id}
 
-    def _candidates(self, kf_id: int, view: RGBDView, T: np.ndarray) -> list[tuple[int, float]]:
+    def _candidates(self, kf_id: int, view: RGBDView, poses: dict[int, np.ndarray]) -> list[tuple[int, float]]:
         c = self.cfg
+        T = poses[kf_id]
         recent = set(self._order[-c.exclude_last:]) | {kf_id}
         found = []
         for i in self._order:
-            if i in recent:
+            if i in recent or i not in poses:
                 continue
-            kf = self._kfs[i]
-            d_t, _ = pose_error(kf.T_w_c, T)
-            cos = float(np.clip(kf.T_w_c[:3, 2] @ T[:3, 2], -1.0, 1.0))
+            kf, T_i = self._kfs[i], poses[i]
+            d_t, _ = pose_error(T_i, T)
+            cos = float(np.clip(T_i[:3, 2] @ T[:3, 2], -1.0, 1.0))
             if d_t > c.max_distance or np.degrees(np.arccos(cos)) > c.max_angle:
                 continue
-            ov = view_overlap(view.depth, view.K, T, kf.view.K, kf.T_w_c, kf.view.depth.shape, kf.view.depth,
+            ov = view_overlap(view.depth, view.K, T, kf.view.K, T_i, kf.view.depth.shape, kf.view.depth,
                               stride=2)
             if ov >= c.min_overlap:
                 found.append((i, ov))
@@ -127,19 +133,22 @@ class LoopCloser:
                 log.debug("loop %d-%d: overlap %.2f < %.2f", i, kf_id, ov, c.min_overlap)
         return sorted(found, key=lambda x: -x[1])
 
-    def detect(self, kf_id: int, frame: FrameLike | RGBDView, T_w_c: np.ndarray) -> list[LoopConstraint]:
-        """Verified loops between keyframe ``kf_id`` (images ``frame``, current estimate ``T_w_c``) and earlier
-        stored keyframes. Does not store ``kf_id`` itself (call :meth:`add_keyframe`)."""
+    def detect(self, kf_id: int, frame: FrameLike | RGBDView,
+               keyframe_poses: dict[int, np.ndarray]) -> list[LoopConstraint]:
+        """Verified loops between keyframe ``kf_id`` (images ``frame``) and earlier stored keyframes, from the
+        current pose estimates ``keyframe_poses`` (``T_w_c`` by keyframe id, ``kf_id`` included). Does not store
+        ``kf_id`` itself (call :meth:`add_keyframe`)."""
         c = self.cfg
         view = self._view(frame)
-        T = self._pose(T_w_c, kf_id)
+        poses = self._poses(keyframe_poses, kf_id)
+        T = poses[kf_id]
         self.rejections = []
         out: list[LoopConstraint] = []
         orb = self._orb(view)
-        for i, ov in self._candidates(kf_id, view, T)[:c.max_candidates]:
+        for i, ov in self._candidates(kf_id, view, poses)[:c.max_candidates]:
             reason = self._verify_appearance(orb, self._kfs[i].orb)
             if reason is None:
-                T_i_j_pred = inv(self._kfs[i].T_w_c) @ T
+                T_i_j_pred = inv(poses[i]) @ T
                 res = register_rgbd(view, self._kfs[i].view, T_i_j_pred, c.registration)
                 if not res.ok:
                     reason = res.reason
@@ -152,7 +161,7 @@ class LoopCloser:
                     log.info("loop %d-%d accepted: overlap %.2f, fitness %.3f, rmse %.4f m, correction %.3f m "
                              "%.2f deg", i, kf_id, ov, res.fitness, res.inlier_rmse, d_t, d_r)
                     out.append(LoopConstraint(i, kf_id, res.T_tgt_src, res.information, res.fitness,
-                                              res.inlier_rmse))
+                                              res.inlier_rmse, d_t, d_r))
                     continue
             log.info("loop %d-%d rejected: %s", i, kf_id, reason)
             self.rejections.append((i, reason))

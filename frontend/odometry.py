@@ -5,19 +5,24 @@ Per frame (:meth:`Odometry.track`):
 1. predict ``T_w_pred = T_w_last @ inv(T_w_prev) @ T_w_last`` (constant velocity);
 2. register the frame to the reference frame from ``inv(T_w_ref) @ T_w_pred`` (:func:`register_rgbd`);
 3. gate: registration gates (fitness, inlier RMSE, correction) and the per-frame motion;
-4. on failure (frame without depth, featureless frame, Open3D error, failed gate) keep the prediction, with
-   weak information and the reason logged;
-5. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
+4. retry a failed registration (``retry``): from zero motion instead of the constant-velocity guess, then with
+   the other registration method (``retry_method``) -- fast or jerky motion breaks the velocity guess first;
+5. on failure of every attempt (frame without depth, featureless frame, Open3D error, failed gate) keep the
+   prediction, with weak information and the reason logged;
+6. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
    reference changes when the camera has moved far from it or the fitness drops).
 
-The pipeline reports refined poses back with :meth:`Odometry.correct`, so the next prediction starts from them.
-Only the reference frame's images (and their cached preprocessing) are kept.
+The poses here are the **frontend's own estimate** (odometry alone, never corrected by the field or the graph):
+the pipeline uses the per-frame motion ``T_prev_c`` as a seed and the chained estimate as an independent
+measurement; it never writes poses back. Only the reference frame's images (and their cached preprocessing)
+are kept.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
@@ -41,6 +46,8 @@ class OdometryResult:
         frame_index: the frame's index.
         T_w_c: (4, 4) camera pose in the world (the constant-velocity prediction when not ok).
         T_ref_c: (4, 4) pose of the camera in the reference frame it was registered to (``inv(T_w_ref) @ T_w_c``).
+        T_prev_c: (4, 4) motion since the previous tracked frame (``inv(T_w_prev) @ T_w_c``, this odometry's own
+            estimates; identity for the first frame).
         ref_index: index of that reference frame (the frame itself for the first frame).
         information: (6, 6) information of ``T_ref_c`` (right perturbation ``T_ref_c exp(xi)``,
             ``xi = [rotation (rad), translation (m)]``, ready for ``BetweenFactor(ref, c)``); the weak
@@ -50,6 +57,7 @@ class OdometryResult:
         fitness: inlier fraction (0..1).
         inlier_rmse: metres (inf when unknown).
         reason: why not ok, or a note ("first frame"); "" otherwise.
+        attempt: which attempt succeeded ("velocity", "zero-motion", "<method>") or "" when none did.
     """
 
     frame_index: int
@@ -61,6 +69,8 @@ class OdometryResult:
     fitness: float
     inlier_rmse: float
     reason: str = ""
+    T_prev_c: np.ndarray = dc_field(default_factory=lambda: np.eye(4))
+    attempt: str = ""
 
 
 class Odometry:
@@ -117,23 +127,6 @@ class Odometry:
         self._set_reference(self._last_index, self._last_view, self._T_w_last)
         return True
 
-    def correct(self, frame_index: int, T_w_c: np.ndarray) -> None:
-        """Replace the pose of a frame the odometry still uses (the last frame and/or the reference frame) with
-        a refined one (e.g. from the field tracker or the pose graph). Other frames are ignored with a log."""
-        T = np.asarray(T_w_c, dtype=np.float64)
-        if not is_valid_pose(T):
-            raise InputError(f"odometry.correct: pose of frame {frame_index} is not a finite rigid transform")
-        used = False
-        if frame_index == self._last_index:
-            self._T_w_last = T.copy()
-            used = True
-        if frame_index == self._ref_index:
-            self._T_w_ref = T.copy()
-            used = True
-        if not used:
-            log.info("odometry.correct: frame %d is neither the last frame (%s) nor the reference (%s): ignored",
-                     frame_index, self._last_index, self._ref_index)
-
     # -- tracking --------------------------------------------------------------------------------------------
     def track(self, frame: FrameLike) -> OdometryResult:
         """Estimate the pose of ``frame`` (needs ``index``, ``rgb``, ``depth``, ``K``; see module docstring)."""
@@ -145,22 +138,24 @@ class Odometry:
 
         # 1. Constant-velocity prediction.
         T_w_pred = self.predict()
-        if self._ref is None:
-            reg = None
-            reason = problem or "no reference frame yet"
-        else:
-            # 2. Register to the reference.
-            reg = register_rgbd(view, self._ref, inv(self._T_w_ref) @ T_w_pred, self.cfg)
-            reason = reg.reason
-        T_w_c = T_w_pred
-        if reg is not None and reg.ok:
-            # 3. Per-frame motion gate.
-            T_w_c = self._T_w_ref @ reg.T_tgt_src
-            d_t, d_r = pose_error(self._T_w_last, T_w_c)
-            if d_t > self.cfg.max_translation or d_r > self.cfg.max_rotation:
-                reason = f"motion since the last frame too large ({d_t:.3f} m, {d_r:.1f} deg)"
-                T_w_c = T_w_pred
-        ok = reg is not None and reg.ok and not reason
+        reg, reason, attempt, T_w_c = None, problem or "no reference frame yet", "", T_w_pred
+        if self._ref is not None:
+            # 2-4. Register to the reference (and retry), gate the per-frame motion.
+            for name, T_w_init, cfg in self._attempts(T_w_pred):
+                reg = register_rgbd(view, self._ref, inv(self._T_w_ref) @ T_w_init, cfg)
+                reason = reg.reason
+                if reg.ok:
+                    T_cand = self._T_w_ref @ reg.T_tgt_src
+                    d_t, d_r = pose_error(self._T_w_last, T_cand)
+                    if d_t > self.cfg.max_translation or d_r > self.cfg.max_rotation:
+                        reason = f"motion since the last frame too large ({d_t:.3f} m, {d_r:.1f} deg)"
+                    else:
+                        T_w_c, attempt = T_cand, name
+                        break
+                log.debug("frame %d: odometry attempt %s failed (%s)", index, name, reason)
+        ok = attempt != ""
+        if ok:
+            reason = ""
         ref_index = self._ref_index if self._ref_index is not None else index
         T_ref_c = inv(self._T_w_ref) @ T_w_c if self._ref is not None else np.eye(4)
         if ok:
@@ -171,13 +166,23 @@ class Odometry:
             log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
         result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
                                 reg.fitness if reg is not None else 0.0,
-                                reg.inlier_rmse if reg is not None else float("inf"), reason)
+                                reg.inlier_rmse if reg is not None else float("inf"), reason,
+                                inv(self._T_w_last) @ T_w_c, attempt)
 
         # 5. Update velocity and reference.
         self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, T_w_c, index
         self._last_view = view if problem is None else None
         self._update_reference(index, view, problem, result)
         return result
+
+    def _attempts(self, T_w_pred: np.ndarray):
+        """(name, initial world pose, registration config) to try in order."""
+        yield "velocity", T_w_pred, self.cfg
+        if not self.cfg.retry:
+            return
+        yield "zero-motion", self._T_w_last, self.cfg
+        if self.cfg.retry_method not in ("none", self.cfg.method):
+            yield self.cfg.retry_method, T_w_pred, self.cfg.model_copy(update={"method": self.cfg.retry_method})
 
     def _first(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
         self._last_index = index

@@ -37,9 +37,9 @@ from pydantic import Field, model_validator
 from lrslam.camera import backproject_depth
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alignment, diagonal_information,
+from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alignment,
                                        normal_spread, valid_mask, view_problem)
-from lrslam.geometry import is_valid_pose, pose_error
+from lrslam.geometry import diagonal_information, is_valid_pose, pose_error
 
 __all__ = ["OdometryConfig", "RegistrationResult", "register_rgbd", "fallback_information", "frame_problem"]
 
@@ -100,6 +100,9 @@ class OdometryConfig(StrictModel):
     reference_max_rotation: float = Field(15.0, gt=0)
     reference_min_fitness: float = Field(0.6, ge=0, le=1)
     max_consecutive_failures: int = Field(3, ge=0)
+    # Odometry: retries of a failed registration (zero-motion guess, then the other method).
+    retry: bool = True
+    retry_method: Literal["rgbd", "icp", "kiss", "none"] = "icp"
 
     @model_validator(mode="after")
     def _check(self) -> "OdometryConfig":

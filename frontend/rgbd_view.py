@@ -20,11 +20,11 @@ import numpy as np
 
 from lrslam.camera import backproject_depth, block_intrinsics, project_points, strided_intrinsics, transform_points
 from lrslam.errors import InputError
+from lrslam.geometry import hat
 
 __all__ = [
     "FrameLike", "RGBDView", "AlignmentQuality", "as_view", "valid_mask",
-    "view_problem", "normal_spread", "intensity_std", "normal_map", "assess_alignment", "adjoint",
-    "diagonal_information",
+    "view_problem", "normal_spread", "intensity_std", "normal_map", "assess_alignment",
 ]
 
 
@@ -262,28 +262,10 @@ def assess_alignment(source: RGBDView, target: RGBDView, T_tgt_src: np.ndarray, 
     # sum_k [-[p]x, I]^T [-[p]x, I] in closed form.
     S = p.T @ p
     s = p.sum(axis=0)
-    sx = np.array([[0, -s[2], s[1]], [s[2], 0, -s[0]], [-s[1], s[0], 0]])
+    sx = hat(s)
     H = np.zeros((6, 6))
     H[:3, :3] = np.trace(S) * np.eye(3) - S
     H[:3, 3:] = sx
     H[3:, :3] = sx.T
     H[3:, 3:] = n * np.eye(3)
     return AlignmentQuality(n / n_valid, rmse, n, H / n / sigma_m ** 2)
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of a 4x4 pose for tangents ordered ``[rotation, translation]`` (as GTSAM's
-    ``Pose3.AdjointMap``): ``T exp(xi) T^-1 = exp(Ad_T xi)``."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = R
-    Ad[3:, 3:] = R
-    Ad[3:, :3] = tx @ R
-    return Ad
-
-
-def diagonal_information(sigma_rotation_rad: float, sigma_translation_m: float) -> np.ndarray:
-    """6x6 diagonal information ``diag(1/sigma_r^2 (x3), 1/sigma_t^2 (x3))`` for a ``[rotation, translation]``
-    tangent."""
-    return np.diag([sigma_rotation_rad ** -2] * 3 + [sigma_translation_m ** -2] * 3)

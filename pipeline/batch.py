@@ -30,7 +30,7 @@ def run_job(sequence: str, config: dict[str, Any], out_dir: str, progress: bool 
     from lrslam.pipeline.run import run_sequence
 
     try:
-        cfg = RunConfig.model_validate(config).validate_components()
+        cfg = RunConfig.model_validate(config)
         return run_sequence(sequence, cfg, out_dir, progress=progress).metrics
     except Exception as e:  # one failing job must not lose the others
         log.error("job %s (%s) failed: %s", sequence, config.get("mode"), e)

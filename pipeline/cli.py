@@ -111,7 +111,7 @@ def params(
     rows = {}
     for name in names:
         rcfg = build_config(config, name)
-        counts = SceneModel(b, rcfg.field_config().model).parameter_count()
+        counts = SceneModel(b, rcfg.field.model).parameter_count()
         rows[name] = counts
     if as_json:
         typer.echo(json.dumps({"bound": b.tolist(), "parameters": rows}, indent=2))

@@ -1,9 +1,11 @@
 """The run configuration: composes each component's own small config; nothing below reads it whole.
 
-A run config is built from (later wins): component defaults (the paper's settings) <- a dataset preset
-(``configs/dataset/<name>.yaml``) <- a representation preset (``configs/representation/<name>.yaml``, merged
-into ``field.model``) <- a user YAML file <- ``key.sub=value`` overrides. The resolved config is saved with
-every run (``config.yaml``) and reproduces it.
+A run config is built from (later wins): component defaults (the paper's settings) <- the mode's preset
+(:data:`MODE_PRESETS`: which parts the runner is built from, and the settings that go with them) <- a dataset
+preset (``configs/dataset/<name>.yaml``) <- a representation preset (``configs/representation/<name>.yaml``,
+merged into ``field.model``) <- a user YAML file <- ``key.sub=value`` overrides. Every section is typed by its
+component's own model (validated once, here); the resolved config is a plain dump, saved with every run
+(``config.yaml``), and reproduces it.
 """
 
 from __future__ import annotations
@@ -13,11 +15,19 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from pydantic import Field
 
 from lrslam.config import StrictModel, deep_update, load_yaml
 from lrslam.errors import InputError
 
-__all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "build_config", "list_presets"]
+from lrslam.backend.graph import GraphConfig
+from lrslam.field.config import FieldSLAMConfig
+from lrslam.frontend.keyframes import KeyframeConfig
+from lrslam.frontend.loop_closure import LoopClosureConfig
+from lrslam.frontend.registration import OdometryConfig
+
+__all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig", "BackendConfig",
+           "MODE_PRESETS", "build_config", "list_presets"]
 
 
 class DatasetSection(StrictModel):
@@ -28,14 +38,50 @@ class DatasetSection(StrictModel):
 
 
 class ScheduleConfig(StrictModel):
-    """When mapping, keyframing and re-mapping happen (ESLAM: map every 4 frames, keyframe every 5)."""
+    """When mapping and keyframing happen (ESLAM: map every 4 frames, a keyframe every 4-5), and how the
+    constant-velocity seeder extrapolates."""
 
-    map_every: int = 4                 # field mode: map every N frames (fused mode maps on keyframes)
-    keyframe_every: int = 4            # field mode: every N-th frame becomes a keyframe (ESLAM rule)
-    remap_iters: int = 30              # fused: field re-optimisation iterations after the graph moved keyframes
-    remap_min_shift_m: float = 0.005   # fused: re-map only when some keyframe moved more than this
-    remap_keyframes: int = 20          # fused: at most this many (most-moved) keyframes take part in re-mapping
-    graph_every_keyframe: bool = True  # fused: optimise the graph at every keyframe (else only at loops / the end)
+    map_every: int = Field(4, gt=0, description="map every N frames (and at every keyframe)")
+    keyframe_every: int = Field(4, gt=0, description="keyframer every_n: every N-th frame is a keyframe")
+    velocity_model: Literal["linear", "se3"] = Field(
+        "linear", description="constant-velocity seeder: ESLAM's linear extrapolation of (t, q), or the last "
+        "relative motion repeated on SE(3)")
+
+
+class PartsConfig(StrictModel):
+    """The parts the runner is built from (:func:`lrslam.pipeline.parts.build_runner`); the modes are presets.
+
+    seeder: ``constant_velocity`` (ESLAM) or ``odometry`` (the frontend). refiner: ``field`` (LRSLAM tracking,
+    which also builds the field and its mapper) or ``none``. keyframer: ``every_n`` (ESLAM) or ``policy``
+    (motion / overlap). backend: ``graph`` (GTSAM pose graph + loop closure) or ``none``."""
+
+    seeder: Literal["constant_velocity", "odometry"] = "odometry"
+    refiner: Literal["field", "none"] = "field"
+    keyframer: Literal["every_n", "policy"] = "policy"
+    backend: Literal["graph", "none"] = "graph"
+
+
+class BackendConfig(StrictModel):
+    """How the pose graph is fed and when its result is written back and re-mapped for.
+
+    factors: which measurements enter the graph: ``odometry`` (the frontend's own keyframe-to-keyframe
+    estimate, :mod:`lrslam.frontend.keyframe_link`), ``field`` (the relative pose of consecutive keyframes in
+    the current trajectory, with the field tracker's information; re-stated from the current poses before every
+    solve, so the graph never pulls the mapper's refinements back), ``loop`` (verified loop closures).
+    optimise: ``on_loop`` solves when a loop with a real correction arrives (above ``loop_min_correction_*``;
+    consistent re-observations only add their factor), ``every_keyframe`` at every keyframe.
+    write_min_shift_*: a keyframe is overwritten only where the graph moved it more than this.
+    remap_min_shift_m / remap_keyframes: a solve that moved some keyframe more than this re-maps the field over
+    (at most) that many most-moved keyframes (``field.mapping.remap_iters`` iterations)."""
+
+    factors: list[Literal["odometry", "field", "loop"]] = ["odometry", "field", "loop"]
+    optimise: Literal["on_loop", "every_keyframe"] = "on_loop"
+    loop_min_correction_m: float = Field(0.01, ge=0)
+    loop_min_correction_deg: float = Field(1.0, ge=0)
+    write_min_shift_m: float = Field(1e-4, ge=0)
+    write_min_shift_deg: float = Field(0.01, ge=0)
+    remap_min_shift_m: float = Field(0.005, ge=0)
+    remap_keyframes: int = Field(20, gt=0)
 
 
 class OutputConfig(StrictModel):
@@ -50,75 +96,44 @@ class OutputConfig(StrictModel):
 
 
 class RunConfig(StrictModel):
-    """Root config of ``lrslam run``. Component sections are validated by the components' own models."""
+    """Root config of ``lrslam run``: every section typed by its component's own model."""
 
     mode: Literal["field", "frontend", "fused"] = "fused"
+    parts: PartsConfig = PartsConfig()
     dataset: DatasetSection = DatasetSection()
     bound: list[list[float]] | None = None              # (3,2) metres, world frame; None = from data / auto
-    auto_bound_margin: float = 1.0                      # metres added around the first frame's points
+    auto_bound_margin: float = Field(1.0, ge=0)         # metres added around the first frame's points
     initial_pose: Literal["identity", "gt"] = "identity"  # "gt": first pose from GT (ESLAM protocol) when present
-    field: dict[str, Any] = {}
-    odometry: dict[str, Any] = {}
-    keyframes: dict[str, Any] = {}
-    loop_closure: dict[str, Any] = {}
-    graph: dict[str, Any] = {}
+    field: FieldSLAMConfig = FieldSLAMConfig()
+    odometry: OdometryConfig = OdometryConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    graph: GraphConfig = GraphConfig()
+    backend: BackendConfig = BackendConfig()
     schedule: ScheduleConfig = ScheduleConfig()
     output: OutputConfig = OutputConfig()
-
-    # -- component configs (each validated strictly by its own model) ---------------------------------------
-    def field_config(self):
-        from lrslam.field.slam import FieldSLAMConfig
-
-        return FieldSLAMConfig.model_validate(self.field)
-
-    def odometry_config(self):
-        from lrslam.frontend.odometry import OdometryConfig
-
-        return OdometryConfig.model_validate(self.odometry)
-
-    def keyframe_config(self):
-        from lrslam.frontend.keyframes import KeyframeConfig
-
-        return KeyframeConfig.model_validate(self.keyframes)
-
-    def loop_closure_config(self):
-        from lrslam.frontend.loop_closure import LoopClosureConfig
-
-        return LoopClosureConfig.model_validate(self.loop_closure)
-
-    def graph_config(self):
-        from lrslam.backend.graph import GraphConfig
-
-        return GraphConfig.model_validate(self.graph)
 
     def reader_options(self):
         from lrslam.frontend.datasets import ReaderOptions
 
         return ReaderOptions.model_validate(self.dataset.options)
 
-    def validate_components(self) -> "RunConfig":
-        """Validate every component section now (so a typo fails before a long run starts)."""
-        from pydantic import ValidationError
-
-        for section, build in (("dataset.options", self.reader_options), ("odometry", self.odometry_config),
-                               ("keyframes", self.keyframe_config), ("loop_closure", self.loop_closure_config),
-                               ("graph", self.graph_config), ("field", self.field_config)):
-            try:
-                build()
-            except ValidationError as e:
-                raise InputError(_describe(e, section)) from None
-        return self
-
     def resolved(self) -> dict[str, Any]:
-        """Every setting with its effective value (component defaults filled in), for ``config.yaml``."""
+        """Every setting with its effective value, for ``config.yaml`` (a plain dump; reader options filled in)."""
         out = self.model_dump(mode="json")
         out["dataset"]["options"] = self.reader_options().model_dump(mode="json")
-        out["field"] = self.field_config().model_dump(mode="json")
-        out["odometry"] = self.odometry_config().model_dump(mode="json")
-        out["keyframes"] = self.keyframe_config().model_dump(mode="json")
-        out["loop_closure"] = self.loop_closure_config().model_dump(mode="json")
-        out["graph"] = self.graph_config().model_dump(mode="json")
         return out
+
+
+# The modes are presets of the runner factory: which parts, and the settings that belong to them.
+MODE_PRESETS: dict[str, dict[str, Any]] = {
+    "field": {"parts": {"seeder": "constant_velocity", "refiner": "field", "keyframer": "every_n",
+                        "backend": "none"}},
+    "frontend": {"parts": {"seeder": "odometry", "refiner": "none", "keyframer": "policy", "backend": "none"}},
+    "fused": {"parts": {"seeder": "odometry", "refiner": "field", "keyframer": "policy", "backend": "graph"},
+              # the odometry seed is a measurement, not a guess: keep the field's refinement only where it is better
+              "field": {"tracking": {"accept_if_better": True}}},
+}
 
 
 def _preset_dir(kind: str):
@@ -172,13 +187,20 @@ def build_config(preset: str | None = None, representation: str | None = None, c
     for item in overrides or []:
         data = deep_update(data, _parse_override(item))
     data = deep_update(data, {k: v for k, v in top_level.items() if v is not None})
+    mode = data.get("mode", "fused")
+    if mode in MODE_PRESETS:  # an unknown mode is reported by the validation below
+        data = deep_update(MODE_PRESETS[mode], data)
     from pydantic import ValidationError
 
     try:
         cfg = RunConfig.model_validate(data)
     except ValidationError as e:
         raise InputError(_describe(e, "")) from None
-    return cfg.validate_components()
+    try:
+        cfg.reader_options()
+    except ValidationError as e:
+        raise InputError(_describe(e, "dataset.options")) from None
+    return cfg
 
 
 def _describe(e, section: str) -> str:

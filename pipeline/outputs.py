@@ -1,4 +1,5 @@
-"""Write a run folder's files and metrics (evaluation against ground truth happens here, not in the runner)."""
+"""Write a run folder's files and metrics from a frozen :class:`~lrslam.pipeline.runner.RunResult` (evaluation
+against ground truth happens here, not in the runner)."""
 
 from __future__ import annotations
 
@@ -14,16 +15,16 @@ __all__ = ["write_outputs"]
 log = logging.getLogger(__name__)
 
 
-def _mesh(runner, seq, poses, cfg, timer):
+def _mesh(result, seq, poses, cfg, timer):
+    if result.mesh is not None:
+        return result.mesh
     with timer("mesh"):
-        if runner.field is not None:
-            return runner.field.extract_mesh(cfg.output.mesh_resolution)
         from lrslam.pipeline.tsdf import tsdf_mesh
 
         return tsdf_mesh((seq[i] for i in range(len(poses))), poses, voxel=cfg.output.tsdf_voxel)
 
 
-def _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg) -> None:
+def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> None:
     from lrslam.pipeline.evaluation.ate import compute_ate
 
     gt = seq.gt_poses()
@@ -34,10 +35,10 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg) -> None:
     res = compute_ate(timestamps, poses, np.asarray(seq.timestamps)[ok], gt[ok])
     metrics.update(ate_rmse_cm=res.rmse_cm, ate_mean_cm=res.mean_cm, ate_median_cm=res.median_cm,
                    ate_max_cm=res.max_cm, ate_matched=res.n_matched)
-    seed = metrics.pop("_seed_poses", None)
-    if seed is not None:
-        rs = compute_ate(timestamps, seed, np.asarray(seq.timestamps)[ok], gt[ok])
-        metrics["seed_ate_rmse_cm"] = rs.rmse_cm
+    for name, other in extra.items():  # the seeds, the frontend's own estimate
+        if other is not None:
+            metrics[f"{name}_ate_rmse_cm"] = compute_ate(timestamps, other, np.asarray(seq.timestamps)[ok],
+                                                         gt[ok]).rmse_cm
     gt_mesh = getattr(seq, "gt_mesh_path", None)
     if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
         from lrslam.pipeline.evaluation.mesh_metrics import cull_mesh, load_mesh, reconstruction_metrics
@@ -54,32 +55,39 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg) -> None:
         metrics.update({f"mesh_{k}": v for k, v in rec.items()})
 
 
-def write_outputs(out_dir: Path, cfg, seq, runner, timestamps, poses, logs, timer, wall_s, bound, bound_src,
-                  progress) -> dict:
-    """Write trajectory/keyframes/seed TUM files, the mesh, the plot; return the metrics dict."""
+def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bound, bound_src, progress,
+                  frame_seconds: np.ndarray | None = None) -> dict:
+    """Write trajectory / keyframes / seed / frontend TUM files, the mesh, the plot; return the metrics dict.
+    ``frame_seconds``: (N,) wall time per frame, for the first-third / last-third speed figures."""
+    poses = result.poses
     n = len(poses)
     write_tum(out_dir / "trajectory.txt", timestamps, poses, header=f"lrslam {cfg.mode} T_w_c")
-    kf_ids = runner.traj.keyframe_ids()
+    kf_ids = list(result.keyframe_ids)
     write_tum(out_dir / "keyframes.txt", timestamps[kf_ids], poses[kf_ids], header="lrslam keyframes T_w_c")
-    seed = np.stack(runner.seed_poses[:n])
+    seed = result.seed_poses[:n]
     write_tum(out_dir / "trajectory_seed.txt", timestamps, seed, header="per-frame seed poses")
+    frontend = result.frontend_poses[:n] if result.frontend_poses is not None else None
+    if frontend is not None:
+        write_tum(out_dir / "trajectory_frontend.txt", timestamps, frontend, header="frontend-only poses T_w_c")
 
     metrics: dict = {
-        "mode": cfg.mode, "n_frames": n, "n_keyframes": len(kf_ids), "n_loop_closures": runner.n_loops,
-        "n_remaps": runner.n_remaps, "wall_s": round(wall_s, 3), "fpt_s": round(wall_s / max(n, 1), 4),
+        "mode": cfg.mode, "parts": cfg.parts.model_dump(), "n_frames": n, "n_keyframes": len(kf_ids),
+        **result.counts, "wall_s": round(wall_s, 3), "fpt_s": round(wall_s / max(n, 1), 4),
         "bound": np.round(bound, 4).tolist(), "bound_source": bound_src,
-        "seed_failures": sum(not r.seed_ok for r in logs),
-        "refine_failures": sum(r.refine_ok is False for r in logs),
-        "frames_without_depth": sum(any("no valid depth" in s for s in r.notes) for r in logs),
     }
-    if runner.field is not None:
-        metrics["parameters"] = runner.field.parameter_count()
-        metrics["device"] = str(getattr(runner.field, "device", "cpu"))
+    if frame_seconds is not None and len(frame_seconds) >= 3:
+        k = len(frame_seconds) // 3
+        first, last = float(np.mean(frame_seconds[:k])), float(np.mean(frame_seconds[-k:]))
+        metrics.update(fpt_first_third_s=round(first, 4), fpt_last_third_s=round(last, 4),
+                       fpt_last_over_first=round(last / first, 3) if first > 0 else None)
+    if result.parameters is not None:
+        metrics["parameters"] = result.parameters
+        metrics["device"] = result.device
 
     mesh = None
     if cfg.output.mesh:
         try:
-            mesh = _mesh(runner, seq, poses, cfg, timer)
+            mesh = _mesh(result, seq, poses, cfg, timer)
             if len(mesh.faces) == 0:
                 log.warning("the mesh is empty (nothing observed inside the bound?)")
                 metrics["mesh_error"] = "empty mesh"
@@ -88,13 +96,11 @@ def write_outputs(out_dir: Path, cfg, seq, runner, timestamps, poses, logs, time
             log.error("mesh extraction failed: %s", e)
             metrics["mesh_error"] = str(e)
     if cfg.output.evaluate:
-        metrics["_seed_poses"] = seed
         try:
-            _evaluate(metrics, out_dir, seq, timestamps, poses, mesh, cfg)
+            _evaluate(metrics, out_dir, seq, timestamps, poses, {"seed": seed, "frontend": frontend}, mesh, cfg)
         except Exception as e:
             log.error("evaluation failed: %s", e)
             metrics["evaluation_error"] = str(e)
-        metrics.pop("_seed_poses", None)
     metrics["timings"] = timer.summary(n)
     if cfg.output.plots:
         try:
@@ -102,8 +108,10 @@ def write_outputs(out_dir: Path, cfg, seq, runner, timestamps, poses, logs, time
 
             gt = seq.gt_poses()
             gt_pair = (np.asarray(seq.timestamps), gt) if gt is not None else None
-            plot_trajectories(out_dir / "trajectory.png", {cfg.mode: (timestamps, poses), "seed": (timestamps, seed)},
-                              gt_pair, title=f"lrslam {cfg.mode}")
+            trajs = {cfg.mode: (timestamps, poses), "seed": (timestamps, seed)}
+            if frontend is not None and cfg.mode != "frontend":
+                trajs["frontend"] = (timestamps, frontend)
+            plot_trajectories(out_dir / "trajectory.png", trajs, gt_pair, title=f"lrslam {cfg.mode}")
         except Exception as e:
             log.error("plotting failed: %s", e)
     return metrics

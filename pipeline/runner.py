@@ -1,14 +1,15 @@
-"""One SLAM pipeline, three modes (``field`` / ``frontend`` / ``fused``), read as numbered steps per frame:
+"""One SLAM loop built from parts (:mod:`lrslam.pipeline.parts`), read as numbered steps per frame:
 
-1. seed     — constant-velocity prediction (field mode) or frontend odometry (frontend, fused)
-2. refine   — LRSLAM field tracking by rendering loss from the seed (field, fused)
-3. keyframe — ESLAM every-N rule (field) or the distance/angle/overlap policy (frontend, fused)
-4. map      — joint field + window-pose optimisation (field, fused)
-5. graph    — keyframe node + frontend, field and loop-closure factors; optimise (fused)
-6. re-map   — when the graph moved keyframes, the field is re-optimised with the corrected poses (fused)
+1. seed     — constant velocity (ESLAM) or the frontend's odometry
+2. refine   — LRSLAM field tracking by rendering loss from the seed (kept only where it is better, when asked)
+3. keyframe — every N frames (ESLAM) or the motion / overlap policy
+4. map      — joint field + window-pose optimisation; the refined poses go back into the trajectory
+5. graph    — keyframe node + frontend, field and loop factors; solved when a loop brings a real correction
+6. re-map   — when the solve moved keyframes, the field is re-optimised at the corrected poses
 
-Non-keyframes are stored relative to their keyframe, so graph corrections move them too. The runner never
-reads ground truth: the initial pose is passed in by the caller.
+The runner's :class:`~lrslam.pipeline.trajectory.Trajectory` is the one owner of every pose: each part gets
+the poses it needs as arguments and returns what it changed. The runner never reads ground truth: the initial
+pose is passed in by the caller. :meth:`SlamRunner.finish` returns a frozen :class:`RunResult`.
 """
 
 from __future__ import annotations
@@ -19,34 +20,60 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from lrslam.frontend.frame import Frame
-from lrslam.geometry import inv, pose_error
-from lrslam.pipeline.anchored import AnchoredTrajectory
+from lrslam.errors import InputError
 from lrslam.pipeline.config import RunConfig
+from lrslam.pipeline.parts import build_parts
 from lrslam.pipeline.timing import StageTimer
+from lrslam.pipeline.trajectory import Trajectory
 
-__all__ = ["SlamRunner", "FrameLog"]
+__all__ = ["SlamRunner", "FrameRecord", "RunResult"]
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
-class FrameLog:
+class FrameRecord:
     """What happened to one frame (for the run log and metrics)."""
 
     index: int
     seed_ok: bool = True
     refine_ok: bool | None = None
+    refine_accepted: bool = False
+    has_depth: bool = True
     keyframe: bool = False
     loops: int = 0
+    solved: bool = False
     remapped: bool = False
     notes: list[str] = dc_field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class RunResult:
+    """Everything a run produced, for the output writers (they never reach into the runner).
+
+    poses: (N, 4, 4) ``T_w_c``. keyframe_ids: frame indices. seed_poses: (N, 4, 4) per-frame seeds.
+    frontend_poses: (N, 4, 4) the frontend's own estimate (odometry alone) or None without one.
+    records: per-frame :class:`FrameRecord`. counts: loops, solves, re-maps, reverted mapping poses ...
+    mesh: the field's mesh (``trimesh.Trimesh``) or None. parameters: field parameter counts or None.
+    device: the field's device or None.
+    """
+
+    poses: np.ndarray
+    keyframe_ids: tuple[int, ...]
+    seed_poses: np.ndarray
+    frontend_poses: np.ndarray | None
+    records: tuple[FrameRecord, ...]
+    counts: dict
+    mesh: object | None = None
+    parameters: dict | None = None
+    device: str | None = None
+
+
 class SlamRunner:
-    """Runs one sequence frame by frame in the configured mode.
+    """Runs one sequence frame by frame with the parts ``cfg.parts`` asks for.
 
     Args:
-        cfg: the run config (components get their own sections only).
+        cfg: the run config (each part gets its own section only).
         K: (3, 3) intrinsics; height, width: image size in pixels.
         bound: (3, 2) scene bound in metres (world frame) for the field.
         timer: accumulates per-stage wall time.
@@ -54,171 +81,132 @@ class SlamRunner:
 
     def __init__(self, cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray,
                  timer: StageTimer | None = None) -> None:
-        self.mode = cfg.mode
-        self.schedule = cfg.schedule
+        self.backend_cfg = cfg.backend
         self.timer = timer or StageTimer()
-        self.traj = AnchoredTrajectory()
-        self.seed_poses: list[np.ndarray] = []
-        self.n_loops = 0
+        self.traj = Trajectory()
+        self.parts = build_parts(cfg, K, height, width, bound)
+        self._seeds: list[np.ndarray] = []
+        self._frontend: list[np.ndarray] = []
+        self._records: list[FrameRecord] = []
         self.n_remaps = 0
-        self.field = self.odometry = self.policy = self.graph = self.loop_closer = None
-        self._last_kf_frame: Frame | None = None
-        if self.mode in ("field", "fused"):
-            from lrslam.field.slam import FieldSLAM
 
-            self.field = FieldSLAM(cfg.field_config(), np.asarray(bound, dtype=np.float64), K, height, width)
-        if self.mode in ("frontend", "fused"):
-            from lrslam.frontend.keyframes import KeyframePolicy
-            from lrslam.frontend.odometry import Odometry
-
-            self.odometry = Odometry(cfg.odometry_config(), K, height, width)
-            self.policy = KeyframePolicy(cfg.keyframe_config())
-        if self.mode == "fused":
-            from lrslam.backend.graph import PoseGraph
-            from lrslam.frontend.loop_closure import LoopCloser
-
-            self.graph = PoseGraph(cfg.graph_config())
-            self.loop_closer = LoopCloser(cfg.loop_closure_config())
-            self._odometry_cfg = cfg.odometry_config()
+    @property
+    def n_loops(self) -> int:
+        return self.parts.backend.n_loops if self.parts.backend is not None else 0
 
     # ------------------------------------------------------------------------------------------------ frames
-    def start(self, frame: Frame, T_w_c0: np.ndarray) -> FrameLog:
-        """First frame: fixes the world frame at ``T_w_c0`` and initialises every component."""
-        rec = FrameLog(frame.index, keyframe=True)
+    def start(self, frame: Frame, T_w_c0: np.ndarray) -> FrameRecord:
+        """First frame: fixes the world frame at ``T_w_c0`` and initialises every part."""
+        p = self.parts
         if frame.valid_depth_fraction() == 0:
-            raise ValueError(f"frame {frame.index}: the first frame has no valid depth; cannot initialise the map")
-        if self.odometry is not None:
-            self.odometry.reset(T_w_c0, frame)
-        if self.field is not None:
+            raise InputError(f"frame {frame.index}: the first frame has no valid depth; cannot initialise the map")
+        T0 = np.asarray(T_w_c0, dtype=np.float64)
+        p.seeder.start(frame, T0)
+        p.keyframer.start(frame)
+        if p.mapper is not None:
             with self.timer("map"):
-                self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0)
-        if self.graph is not None:
+                p.mapper.start(frame, T0)
+        if p.backend is not None:
             with self.timer("graph"):
-                self.graph.add_keyframe(frame.index, T_w_c0)
-                self.loop_closer.add_keyframe(frame.index, frame, T_w_c0)
-        if self.policy is not None:
-            self.policy.is_keyframe(frame.index, T_w_c0, frame.depth, frame.K)  # registers the first keyframe
-        self._last_kf_frame = frame
-        self.seed_poses.append(np.asarray(T_w_c0, dtype=np.float64))
-        self.traj.add(T_w_c0, is_keyframe=True)
-        return rec
+                p.backend.start(frame, T0)
+        self.traj.add(T0, is_keyframe=True)
+        return self._record(FrameRecord(frame.index, keyframe=True), T0, T0)
 
-    def step(self, frame: Frame) -> FrameLog:
+    def step(self, frame: Frame) -> FrameRecord:
         """Process the next frame (indices must follow :meth:`start` in order)."""
-        rec = FrameLog(frame.index)
-        has_depth = frame.valid_depth_fraction() > 0
-        if not has_depth:
+        p, rec = self.parts, FrameRecord(frame.index)
+        rec.has_depth = frame.valid_depth_fraction() > 0
+        if not rec.has_depth:
             rec.notes.append("no valid depth: pose from the seed, no mapping")
             log.warning("frame %d: no valid depth; keeping the seed pose and skipping mapping", frame.index)
 
         # 1. seed
         with self.timer("seed"):
-            T_seed, rec.seed_ok = self._seed(frame)
-        self.seed_poses.append(T_seed)
+            seed = p.seeder.seed(frame, self.traj)
+        rec.seed_ok = seed.ok
+        if seed.note:
+            rec.notes.append(seed.note)
+        if p.backend is not None:
+            p.backend.on_frame(seed)
 
         # 2. refine
-        T = T_seed
-        if self.field is not None and has_depth:
+        T, information = seed.T_w_c, None
+        if p.field is not None and rec.has_depth:
             with self.timer("refine"):
-                res = self.field.track(frame.rgb, frame.depth, T_seed)
-            rec.refine_ok = bool(res.ok)
-            if res.ok:
-                T = res.T_w_c
-            else:
-                rec.notes.append(f"field tracking fell back to the seed: {res.reason}")
-        if self.odometry is not None:
-            self.odometry.correct(frame.index, T)
+                ref = p.refiner.refine(frame, seed)
+            rec.refine_ok, rec.refine_accepted, information = ref.ok, ref.accepted, ref.information
+            T = ref.T_w_c
+            if ref.note:
+                rec.notes.append(ref.note)
 
         # 3. keyframe
         with self.timer("keyframe"):
-            rec.keyframe = has_depth and self._is_keyframe(frame, T)
+            rec.keyframe = rec.has_depth and p.keyframer.is_keyframe(frame, T, self.traj)
         idx = self.traj.add(T, is_keyframe=rec.keyframe)
 
-        # 4. map
-        if self.field is not None and has_depth and (rec.keyframe or frame.index % self.schedule.map_every == 0):
+        # 4. map (the window poses the mapper refined go back into the trajectory)
+        if p.mapper is not None and rec.has_depth and p.mapper.due(frame, rec.keyframe):
             with self.timer("map"):
-                optimised = self.field.map(frame.index, frame.rgb, frame.depth, T, add_keyframe=rec.keyframe)
-            for fid, T_opt in optimised.items():
-                if fid == frame.index:
-                    self.traj.set_pose(idx, T_opt)
-                elif fid in self.traj.keyframe_ids():
-                    self.traj.update_keyframes({fid: T_opt})
-            T = self.traj.pose(idx)
-            if self.odometry is not None:
-                self.odometry.correct(frame.index, T)
+                refined = p.mapper.map(frame, T, self.traj.keyframe_poses(), add_keyframe=rec.keyframe)
+            for fid, T_opt in refined.items():
+                if fid == idx or fid in self.traj.keyframe_ids():
+                    self.traj.set_pose(fid, T_opt)
 
         # 5-6. graph and re-map
-        if self.graph is not None and rec.keyframe:
-            self._graph_update(frame, T, rec)
-        if rec.keyframe:
-            self._last_kf_frame = frame
-        return rec
+        if p.backend is not None and rec.keyframe:
+            self._graph_and_remap(frame, information, rec)
+        return self._record(rec, seed.T_w_c, self.traj.pose(idx))
 
-    # ------------------------------------------------------------------------------------------------ steps
-    def _seed(self, frame: Frame) -> tuple[np.ndarray, bool]:
-        if self.odometry is not None:
-            res = self.odometry.track(frame)
-            if not res.ok:
-                log.info("frame %d: odometry fell back to constant velocity (%s)", frame.index, res.reason)
-            return np.asarray(res.T_w_c, dtype=np.float64), bool(res.ok)
-        n = len(self.traj)
-        T_prev = self.traj.pose(n - 1)
-        if n < 2:
-            return T_prev, True
-        T_prev2 = self.traj.pose(n - 2)
-        return T_prev @ inv(T_prev2) @ T_prev, True          # constant velocity (ESLAM)
-
-    def _is_keyframe(self, frame: Frame, T_w_c: np.ndarray) -> bool:
-        if self.mode == "field":
-            return frame.index % self.schedule.keyframe_every == 0
-        is_kf, _reason = self.policy.is_keyframe(frame.index, T_w_c, frame.depth, frame.K)
-        return bool(is_kf)
-
-    def _graph_update(self, frame: Frame, T_w_c: np.ndarray, rec: FrameLog) -> None:
-        from lrslam.frontend.registration import register_rgbd
-
-        prev = self._last_kf_frame
-        kf_poses = self.traj.keyframe_poses()
-        T_w_prev = kf_poses[prev.index]
+    def _graph_and_remap(self, frame: Frame, information: np.ndarray | None, rec: FrameRecord) -> None:
+        p, c = self.parts, self.backend_cfg
         with self.timer("graph"):
-            self.graph.add_keyframe(frame.index, T_w_c)
-            # field-refined relative pose between consecutive keyframes
-            T_prev_cur = inv(T_w_prev) @ T_w_c
-            self.graph.add_field_relative(prev.index, frame.index, T_prev_cur)
-            # independent frontend constraint: register this keyframe against the previous one
-            reg = register_rgbd(frame, prev, T_prev_cur, self._odometry_cfg)
-            if reg.ok:
-                self.graph.add_odometry(prev.index, frame.index, reg.T_tgt_src, reg.information)
-            else:
-                rec.notes.append(f"keyframe registration rejected: {reg.reason}")
-            # loop closures against earlier keyframes
-            loops = self.loop_closer.detect(frame.index, frame, T_w_c)
-            for lc in loops:
-                self.graph.add_loop(lc.i, lc.j, lc.T_i_j, lc.information)
-            self.loop_closer.add_keyframe(frame.index, frame, T_w_c)
-            rec.loops = len(loops)
-            self.n_loops += len(loops)
-            if not (self.schedule.graph_every_keyframe or loops):
-                return
-            new_poses = self.graph.optimise()
-        shifts = {k: pose_error(kf_poses.get(k, T_w_c), T)[0] for k, T in new_poses.items()}
-        moved = [k for k, s in sorted(shifts.items(), key=lambda kv: -kv[1]) if s > self.schedule.remap_min_shift_m]
-        self.traj.update_keyframes(new_poses)
-        self.loop_closer.update_poses(new_poses)          # proximity search uses the corrected poses
-        for k, T_k in new_poses.items():
-            self.policy.update_pose(k, T_k)
-        if moved and self.field is not None:
+            corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information)
+        rec.loops, rec.solved = corr.loops, corr.solved
+        if not corr.solved:
+            return
+        moved = self.traj.apply_corrections(corr.poses, c.write_min_shift_m, c.write_min_shift_deg)
+        big = [k for k, (d_t, _) in sorted(moved.items(), key=lambda kv: -kv[1][0]) if d_t > c.remap_min_shift_m]
+        if big and p.mapper is not None:
             with self.timer("remap"):
-                self.field.set_keyframe_poses(new_poses)
-                self.field.remap(moved[: self.schedule.remap_keyframes], self.schedule.remap_iters)
+                p.mapper.remap(self.traj.keyframe_poses(), big[: c.remap_keyframes])
             rec.remapped = True
             self.n_remaps += 1
-        if self.odometry is not None:
-            self.odometry.correct(frame.index, self.traj.pose(len(self.traj) - 1))
+            log.info("keyframe %d: graph moved %d keyframe(s) (max %.3f m); re-mapped %d", frame.index, len(moved),
+                     moved[big[0]][0], min(len(big), c.remap_keyframes))
+
+    def _record(self, rec: FrameRecord, T_seed: np.ndarray, T: np.ndarray) -> FrameRecord:
+        self._seeds.append(np.asarray(T_seed, dtype=np.float64).copy())
+        frontend = getattr(self.parts.seeder, "frontend_pose", None)
+        if frontend is not None:
+            self._frontend.append(frontend())
+        self._records.append(rec)
+        return rec
 
     # ------------------------------------------------------------------------------------------------ results
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        return self.traj.keyframe_poses()
-
     def poses(self) -> np.ndarray:
+        """(N, 4, 4) current ``T_w_c`` of every frame so far (also for a partial trajectory after a crash)."""
         return self.traj.poses()
+
+    def finish(self, mesh: bool = True, mesh_resolution: float | None = None) -> RunResult:
+        """The run's frozen result (with the field's mesh when there is a field and ``mesh``)."""
+        p = self.parts
+        field_mesh = None
+        if mesh and p.mapper is not None:
+            with self.timer("mesh"):
+                field_mesh = p.mapper.mesh(self.traj.keyframe_poses(), mesh_resolution)
+        recs = tuple(self._records)
+        counts = {
+            "n_loop_closures": self.n_loops, "n_remaps": self.n_remaps,
+            "n_graph_solves": p.backend.n_solves if p.backend is not None else 0,
+            "seed_failures": sum(not r.seed_ok for r in recs),
+            "refine_failures": sum(r.refine_ok is False for r in recs),
+            "refinements_kept": sum(bool(r.refine_accepted) for r in recs),
+            "refinements_rejected": sum(r.refine_ok is True and not r.refine_accepted for r in recs),
+            "frames_without_depth": sum(not r.has_depth for r in recs),
+            "mapping_poses_reverted": p.field.reverted_poses if p.field is not None else 0,
+        }
+        return RunResult(
+            poses=self.traj.poses(), keyframe_ids=tuple(self.traj.keyframe_ids()), seed_poses=np.stack(self._seeds),
+            frontend_poses=np.stack(self._frontend) if self._frontend else None, records=recs, counts=counts,
+            mesh=field_mesh, parameters=p.field.parameter_count() if p.field is not None else None,
+            device=str(p.field.device) if p.field is not None else None)

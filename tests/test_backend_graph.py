@@ -10,7 +10,7 @@ import pytest
 from lrslam.backend.conversions import gaussian_from_information, key, pose_from_gtsam, pose_to_gtsam
 from lrslam.backend.graph import GraphConfig, PoseGraph
 from lrslam.errors import InputError
-from lrslam.frontend.rgbd_view import adjoint, diagonal_information
+from lrslam.geometry import adjoint, diagonal_information
 from lrslam.geometry import exp_se3, inv, log_se3, make_pose, pose_error, random_pose, relative
 from lrslam.pipeline.evaluation.ate import compute_ate
 
@@ -65,16 +65,18 @@ def test_perturbed_circle_is_recovered(optimiser, rng):
     n = len(truth)
     graph = PoseGraph(GraphConfig(optimiser=optimiser))
     info = diagonal_information(np.radians(1.0), 0.01)
+    start = {}
     for i, T in enumerate(truth):
-        # 1. Nodes with perturbed initial estimates (the first one is held by its prior).
-        graph.add_keyframe(i, T if i == 0 else T @ random_pose(rng, 0.15, 10.0))
+        # 1. Nodes; perturbed starting poses (the first one is held by its prior).
+        start[i] = T if i == 0 else T @ random_pose(rng, 0.15, 10.0)
+        graph.add_keyframe(i, start[i])
     for i in range(n):
         # 2. Between factors from the true relative poses, closing the circle.
         j = (i + 1) % n
         factor = graph.add_loop if j == 0 else graph.add_odometry
         factor(i, j, relative(truth[i], truth[j]), info)
-    # 3. Optimise.
-    est = graph.optimise()
+    # 3. Optimise from the given poses.
+    est = graph.optimise(start)
     for i, T in enumerate(truth):
         d_t, d_r = pose_error(est[i], T)
         assert d_t < 1e-4 and np.radians(d_r) < 1e-4, (i, d_t, d_r)
@@ -117,7 +119,7 @@ def _solve(cfg, problem, loops) -> float:
     loop_info = diagonal_information(np.radians(0.3), 0.01)
     for i, j, T in loops:
         graph.add_loop(i, j, T, loop_info)
-    est = graph.optimise()
+    est = graph.optimise(dict(enumerate(init)))
     ts = np.arange(N_KF, dtype=float)
     return compute_ate(ts, np.stack([est[k] for k in range(N_KF)]), ts, np.stack(truth)).rmse_cm
 
@@ -172,6 +174,7 @@ def test_isam2_incremental_agrees_with_lm(stiff_problem):
     n = 12
     loop_info = diagonal_information(np.radians(0.3), 0.01)
     graphs = {opt: PoseGraph(GraphConfig(optimiser=opt)) for opt in ("lm", "isam2")}
+    est = {}
     for opt, graph in graphs.items():
         for k in range(n):
             graph.add_keyframe(k, init[k])
@@ -180,15 +183,16 @@ def test_isam2_incremental_agrees_with_lm(stiff_problem):
             if k == n - 1:
                 graph.add_loop(0, k, relative(truth[0], truth[k]), loop_info)
             if opt == "isam2" or k == n - 1:
-                est = graph.optimise()  # iSAM2 updates after every keyframe
-    lm, isam = graphs["lm"].estimates(), graphs["isam2"].estimates()
+                est[opt] = graph.optimise({i: init[i] for i in range(k + 1)})  # iSAM2 updates every keyframe
+    lm, isam = est["lm"], est["isam2"]
     for k in range(n):
         d_t, d_r = pose_error(lm[k], isam[k])
         assert d_t < 1e-5 and d_r < 1e-3, (k, d_t, d_r)
-    cov_lm, cov_isam = graphs["lm"].marginal_covariance(n // 2), graphs["isam2"].marginal_covariance(n // 2)
+    cov_lm = graphs["lm"].marginal_covariance(n // 2, lm)
+    cov_isam = graphs["isam2"].marginal_covariance(n // 2, isam)
     # iSAM2 keeps variables that moved less than its relinearisation threshold at older linearisation points.
     np.testing.assert_allclose(cov_isam, cov_lm, rtol=1e-2, atol=1e-3 * np.abs(cov_lm).max())
-    assert est  # last optimise returned every keyframe
+    assert len(lm) == len(isam) == n  # the last optimise returned every keyframe
 
 
 # -- closed forms, degenerate graphs, bad input ------------------------------------------------------------------
@@ -199,31 +203,38 @@ def test_field_factor_fuses_with_odometry_as_weighted_mean():
     graph.add_keyframe(1, make_pose(np.eye(3), [0.9, 0, 0]))
     graph.add_odometry(0, 1, make_pose(np.eye(3), [1.0, 0, 0]), diagonal_information(0.01, 0.1))
     graph.add_field_relative(0, 1, make_pose(np.eye(3), [1.2, 0, 0]), sigmas=(np.degrees(0.01), 0.05))
-    x = graph.optimise()[1][0, 3]
+    start = {0: np.eye(4), 1: make_pose(np.eye(3), [0.9, 0, 0])}
+    est = graph.optimise(start)
+    x = est[1][0, 3]
     assert x == pytest.approx((1.0 / 0.1**2 + 1.2 / 0.05**2) / (1 / 0.1**2 + 1 / 0.05**2), abs=1e-6)
     # Marginal covariance of keyframe 1: translation variance 1 / (1/0.1^2 + 1/0.05^2), plus the tiny prior.
-    cov = graph.marginal_covariance(1)
+    cov = graph.marginal_covariance(1, est)
     assert cov[3, 3] == pytest.approx(1 / (1 / 0.1**2 + 1 / 0.05**2), rel=1e-3)
+    # Re-stating the field measurement moves the optimum accordingly (the factor is not frozen at insertion).
+    assert graph.set_measurement("field", 0, 1, make_pose(np.eye(3), [1.0, 0, 0]))
+    assert graph.optimise(start)[1][0, 3] == pytest.approx(1.0, abs=1e-6)
+    assert not graph.set_measurement("loop", 0, 1, np.eye(4))
 
 
 def test_degenerate_graphs_do_not_crash(caplog):
     caplog.set_level(logging.INFO, logger="lrslam.backend.graph")
     graph = PoseGraph(GraphConfig())
-    assert graph.optimise() == {}
+    assert graph.optimise({}) == {}
     T0 = make_pose(np.eye(3), [1.0, 2.0, 3.0])
     graph.add_keyframe(7, T0)
-    np.testing.assert_array_equal(graph.optimise()[7], T0)
+    np.testing.assert_array_equal(graph.optimise({7: T0})[7], T0)
     assert graph.n_loops == 0
     assert "nothing to optimise" in caplog.text
     # Covariance of a lone keyframe is its prior's.
-    np.testing.assert_allclose(np.sqrt(np.diag(graph.marginal_covariance(7)))[3:], 1e-5, rtol=1e-6)
-    # A keyframe without any factor keeps its initial pose through an optimisation.
-    graph.add_keyframe(8, T0)
-    graph.add_keyframe(9, T0 @ make_pose(np.eye(3), [0.1, 0, 0]))
+    np.testing.assert_allclose(np.sqrt(np.diag(graph.marginal_covariance(7, {7: T0})))[3:], 1e-5, rtol=1e-6)
+    # A keyframe without any factor keeps the given pose through an optimisation.
+    graph.add_keyframe(8)
+    graph.add_keyframe(9)
     graph.add_odometry(7, 8, np.eye(4), np.eye(6) * 100)
-    est = graph.optimise()
+    T9 = T0 @ make_pose(np.eye(3), [0.1, 0, 0])
+    est = graph.optimise({7: T0, 8: T0 @ make_pose(np.eye(3), [0.05, 0, 0]), 9: T9})
     np.testing.assert_allclose(est[8], T0, atol=1e-6)
-    np.testing.assert_array_equal(est[9], graph.estimate(9))
+    np.testing.assert_array_equal(est[9], T9)
 
 
 @pytest.mark.parametrize("optimiser", ["lm", "isam2", "gnc"])
@@ -234,10 +245,11 @@ def test_cluster_without_path_to_the_prior_recovers_once_connected(optimiser):
     step = make_pose(np.eye(3), [0.5, 0.0, 0.0])
     for k in range(3):
         graph.add_keyframe(k, np.eye(4))
+    start = {k: np.eye(4) for k in range(3)}
     graph.add_odometry(1, 2, step, np.eye(6) * 1e4)
-    assert len(graph.optimise()) == 3
+    assert len(graph.optimise(start)) == 3
     graph.add_odometry(0, 1, step, np.eye(6) * 1e4)
-    est = graph.optimise()
+    est = graph.optimise(start)
     np.testing.assert_allclose(est[2], step @ step, atol=1e-6)
 
 
@@ -254,7 +266,11 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(InputError, match="rigid"):
         graph.add_odometry(0, 1, np.full((4, 4), np.nan), np.eye(6))
     with pytest.raises(InputError, match="unknown keyframe"):
-        graph.estimate(5)
+        graph.marginal_covariance(5, {0: np.eye(4), 1: np.eye(4)})
+    with pytest.raises(InputError, match="no pose given"):
+        graph.optimise({0: np.eye(4)})
+    with pytest.raises(InputError, match="needs a prior"):
+        PoseGraph(GraphConfig()).add_keyframe(0)
 
 
 def test_state_roundtrip_reproduces_the_optimum(stiff_problem):
@@ -265,9 +281,10 @@ def test_state_roundtrip_reproduces_the_optimum(stiff_problem):
     for k in range(5):
         graph.add_odometry(k, k + 1, meas[k], info)
     graph.add_loop(0, 5, relative(truth[0], truth[5]), info)
-    est = graph.optimise()
+    start = {k: init[k] for k in range(6)}
+    est = graph.optimise(start)
     copy = PoseGraph.from_state(GraphConfig(), graph.state())
-    assert copy.n_factors == graph.n_factors and copy.n_loops == 1
-    for k, T in copy.optimise().items():
+    assert copy.n_factors == graph.n_factors and copy.n_loops == 1 and copy.keyframe_ids == graph.keyframe_ids
+    for k, T in copy.optimise(start).items():
         np.testing.assert_allclose(T, est[k], atol=1e-9)
-    np.testing.assert_allclose(inv(copy.estimate(0)) @ est[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(inv(init[0]) @ est[0], np.eye(4), atol=1e-9)

@@ -27,8 +27,13 @@ def scene():
 def _closer(frames, cfg=LoopClosureConfig()) -> LoopCloser:
     closer = LoopCloser(cfg)
     for f in frames[:6]:
-        closer.add_keyframe(f.index, f, f.T_w_c_gt)
+        closer.add_keyframe(f.index, f)
     return closer
+
+
+def _poses(frames, T6):
+    """The owner's keyframe poses: ground truth for the stored keyframes, ``T6`` for the new one."""
+    return {f.index: f.T_w_c_gt for f in frames[:6]} | {6: T6}
 
 
 def test_revisit_is_detected_and_verified(scene, caplog):
@@ -37,9 +42,11 @@ def test_revisit_is_detected_and_verified(scene, caplog):
     closer = _closer(frames)
     kf = frames[6]
     drift = exp_se3(np.array([0.01, 0.03, -0.02, 0.04, -0.02, 0.03]))  # ~5.4 cm, 2.1 deg of accumulated drift
-    loops = closer.detect(6, kf, kf.T_w_c_gt @ drift)
+    loops = closer.detect(6, kf, _poses(frames, kf.T_w_c_gt @ drift))
     assert [(c.i, c.j) for c in loops] == [(0, 6)]
     c = loops[0]
+    assert c.correction_m == pytest.approx(pose_error(inv(frames[0].T_w_c_gt) @ kf.T_w_c_gt @ drift, c.T_i_j)[0])
+    assert 0.03 < c.correction_m < 0.08  # the drift the loop corrects
     d_t, d_r = pose_error(c.T_i_j, inv(frames[0].T_w_c_gt) @ kf.T_w_c_gt)
     assert d_t < 0.003 and d_r < 0.3, (d_t, d_r)  # at half resolution (160x120)
     assert c.fitness > 0.5 and c.rmse < 0.015
@@ -53,8 +60,8 @@ def test_false_candidate_is_rejected_with_a_reason(scene, caplog):
     closer = _closer(frames)
     # Drift claims this keyframe sits next to keyframe 0, but its images show another part of the room.
     elsewhere = make_frame(room, look_at(np.array([0.3, 0.0, 0.5]), np.array([2.0, 0.3, 1.0])), index=6)
-    assert [i for i, _ in closer.candidates(6, elsewhere, frames[0].T_w_c_gt)] == [0]
-    loops = closer.detect(6, elsewhere, frames[0].T_w_c_gt)
+    assert [i for i, _ in closer.candidates(6, elsewhere, _poses(frames, frames[0].T_w_c_gt))] == [0]
+    loops = closer.detect(6, elsewhere, _poses(frames, frames[0].T_w_c_gt))
     assert loops == []
     assert [i for i, _ in closer.rejections] == [0] and closer.rejections[0][1]
     assert "loop 0-6 rejected" in caplog.text
@@ -65,32 +72,34 @@ def test_recent_and_distant_keyframes_are_not_candidates(scene):
     kf = frames[6]
     # Everything recent: no candidate at all.
     closer = _closer(frames, LoopClosureConfig(exclude_last=6))
-    assert closer.candidates(6, kf, kf.T_w_c_gt) == []
+    assert closer.candidates(6, kf, _poses(frames, kf.T_w_c_gt)) == []
     # Estimated far from keyframe 0: no candidate.
     closer = _closer(frames)
     far = kf.T_w_c_gt.copy()
     far[:3, 3] += [3.0, 0.0, 0.0]
-    assert closer.candidates(6, kf, far) == []
-    assert [i for i, _ in closer.candidates(6, kf, kf.T_w_c_gt)] == [0]
+    assert closer.candidates(6, kf, _poses(frames, far)) == []
+    assert [i for i, _ in closer.candidates(6, kf, _poses(frames, kf.T_w_c_gt))] == [0]
 
 
-def test_poses_update_and_bad_input(scene):
+def test_poses_come_from_the_caller_and_bad_input(scene):
     _, frames = scene
     closer = _closer(frames)
     moved = frames[0].T_w_c_gt.copy()
     moved[:3, 3] += [5.0, 0.0, 0.0]
-    closer.update_poses({0: moved, 99: np.eye(4)})  # unknown ids are ignored
-    assert closer.candidates(6, frames[6], frames[6].T_w_c_gt) == []
+    poses = _poses(frames, frames[6].T_w_c_gt) | {0: moved, 99: np.eye(4)}  # unknown ids are ignored
+    assert closer.candidates(6, frames[6], poses) == []
     with pytest.raises(InputError, match="added twice"):
-        closer.add_keyframe(0, frames[0], np.eye(4))
+        closer.add_keyframe(0, frames[0])
     with pytest.raises(InputError, match="rigid"):
-        closer.detect(7, frames[6], np.zeros((4, 4)))
+        closer.detect(7, frames[6], {7: np.zeros((4, 4))})
+    with pytest.raises(InputError, match="no pose given"):
+        closer.detect(7, frames[6], {})
 
 
 def test_orb_appearance_check(scene):
     room, frames = scene
     closer = _closer(frames, LoopClosureConfig(use_orb=True, min_orb_matches=30))
-    assert [(c.i, c.j) for c in closer.detect(6, frames[6], frames[6].T_w_c_gt)] == [(0, 6)]
+    assert [(c.i, c.j) for c in closer.detect(6, frames[6], _poses(frames, frames[6].T_w_c_gt))] == [(0, 6)]
     elsewhere = make_frame(room, look_at(np.array([0.3, 0.0, 0.5]), np.array([2.0, 0.3, 1.0])), index=6)
-    assert closer.detect(6, elsewhere, frames[0].T_w_c_gt) == []
+    assert closer.detect(6, elsewhere, _poses(frames, frames[0].T_w_c_gt)) == []
     assert "ORB matches" in closer.rejections[0][1]  # rejected before any registration

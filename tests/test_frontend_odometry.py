@@ -94,19 +94,35 @@ def test_first_frame_and_missing_reference(sequence):
     assert odo.track(sequence[2]).ok
 
 
-def test_correct_moves_the_prediction(sequence):
+def test_motion_increment_chains_to_the_frontend_pose(sequence):
     f0 = sequence[0]
     odo = Odometry(OdometryConfig(), f0.K, f0.height, f0.width)
-    odo.track(sequence[0])
-    r1 = odo.track(sequence[1])
-    refined = r1.T_w_c @ exp_se3(np.array([0.0, 0.01, 0.0, 0.005, 0.0, 0.0]))
-    odo.correct(1, refined)
-    # Constant velocity from frame 0 (identity) to the refined frame 1.
-    np.testing.assert_allclose(odo.predict(), refined @ refined, atol=1e-12)
-    np.testing.assert_allclose(odo.last_pose, refined)
-    odo.correct(0, np.eye(4))  # neither last nor reference any more: ignored, no error
-    with pytest.raises(InputError, match="rigid"):
-        odo.correct(1, np.zeros((4, 4)))
+    T0 = exp_se3(np.array([0.1, 0.2, 0.3, 1.0, 2.0, 3.0]))
+    odo.reset(T0, f0)
+    T = T0
+    for f in sequence[1:4]:
+        r = odo.track(f)
+        assert r.ok and r.attempt == "velocity"
+        T = T @ r.T_prev_c   # the pipeline's seed: its last pose times the frontend's own increment
+        np.testing.assert_allclose(T, r.T_w_c, atol=1e-9)
+    np.testing.assert_allclose(odo.last_pose, T, atol=1e-9)
+    assert not hasattr(odo, "correct")   # nothing outside writes the frontend's own estimate
+
+
+def test_failed_velocity_guess_is_retried(sequence):
+    """A constant-velocity guess far off (the camera stopped) fails the registration's correction gate; the
+    zero-motion retry recovers the frame."""
+    f0 = sequence[0]
+    cfg = OdometryConfig(max_translation=0.05, max_rotation=3.0)
+    odo = Odometry(cfg, f0.K, f0.height, f0.width)
+    odo.reset(np.eye(4), f0)
+    odo._T_w_prev = exp_se3(np.array([0.0, 0.0, 0.0, -0.2, 0.0, 0.0]))  # a 20 cm "velocity" that is not there
+    r = odo.track(sequence[1])
+    assert r.ok and r.attempt == "zero-motion", (r.attempt, r.reason)
+    no_retry = Odometry(cfg.model_copy(update={"retry": False}), f0.K, f0.height, f0.width)
+    no_retry.reset(np.eye(4), f0)
+    no_retry._T_w_prev = exp_se3(np.array([0.0, 0.0, 0.0, -0.2, 0.0, 0.0]))
+    assert not no_retry.track(sequence[1]).ok
 
 
 def test_repeated_failures_reanchor_the_reference(sequence):

@@ -10,7 +10,8 @@ import pytest
 from frontend_fixtures import T_W_C_REF, look_at, make_frame, make_room
 from lrslam.frontend.frame import Frame
 from lrslam.frontend.registration import OdometryConfig, fallback_information, register_rgbd
-from lrslam.frontend.rgbd_view import adjoint, as_view, assess_alignment
+from lrslam.frontend.rgbd_view import as_view, assess_alignment
+from lrslam.geometry import adjoint
 from lrslam.geometry import pose_error, random_pose
 
 # Acceptance: 2 mm / 0.2 deg. Open3D's hybrid RGB-D odometry alone is biased by its nearest-pixel photometric

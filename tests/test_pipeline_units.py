@@ -5,28 +5,30 @@ import pytest
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.geometry import random_pose
-from lrslam.pipeline.anchored import AnchoredTrajectory
+from lrslam.pipeline.trajectory import Trajectory
 from lrslam.pipeline.auto_bound import bound_from_frame
 from lrslam.pipeline.timing import StageTimer
 
 
-def test_anchored_trajectory_follows_keyframe_corrections(rng):
+def test_trajectory_follows_keyframe_corrections(rng):
     poses = [random_pose(rng, 1.0, 30.0) for _ in range(6)]
-    traj = AnchoredTrajectory()
+    traj = Trajectory()
     for i, T in enumerate(poses):
         traj.add(T, is_keyframe=i in (0, 3))
     np.testing.assert_allclose(traj.poses(), np.stack(poses), atol=1e-12)
     # move keyframe 3 by a correction C: frames 3..5 follow rigidly, frames 0..2 stay
     C = random_pose(rng, 0.2, 5.0)
-    traj.update_keyframes({3: C @ poses[3]})
+    moved = traj.apply_corrections({3: C @ poses[3], 0: poses[0] @ random_pose(rng, 1e-6, 1e-4)},
+                                   min_shift_m=1e-4, min_shift_deg=0.01)
+    assert list(moved) == [3]              # keyframe 0 moved less than the write threshold: untouched
     got = traj.poses()
     np.testing.assert_allclose(got[:3], np.stack(poses[:3]), atol=1e-12)
     np.testing.assert_allclose(got[3:], np.stack([C @ T for T in poses[3:]]), atol=1e-12)
     assert traj.keyframe_ids() == [0, 3]
 
 
-def test_anchored_set_pose_of_non_keyframe(rng):
-    traj = AnchoredTrajectory()
+def test_trajectory_set_pose_of_non_keyframe(rng):
+    traj = Trajectory()
     traj.add(np.eye(4), is_keyframe=True)
     traj.add(np.eye(4))
     T = random_pose(rng, 0.5, 10.0)

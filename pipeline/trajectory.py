@@ -1,19 +1,24 @@
-"""Per-frame poses stored relative to their keyframe, so graph corrections of keyframes move them too."""
+"""The one owner of every camera pose of a run: keyframe poses, and non-keyframes stored relative to their
+keyframe (so a correction of a keyframe moves the frames that hang off it).
+
+Every other component -- the field's keyframe views, the loop closer, the keyframe policy, the pose graph --
+receives the poses it needs from here as arguments and hands back what it changed; nothing else keeps a pose
+copy that could silently diverge.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from lrslam.geometry import inv
+from lrslam.geometry import inv, pose_error
 
-__all__ = ["AnchoredTrajectory"]
+__all__ = ["Trajectory"]
 
 
-class AnchoredTrajectory:
-    """Trajectory of ``T_w_c`` poses where non-keyframes hang off a keyframe (``T_w_c = T_w_kf @ T_kf_c``).
-
-    Keyframes are identified by their frame index. Frames added before any keyframe are stored absolutely.
-    """
+class Trajectory:
+    """``T_w_c`` poses (4x4 float64) of frames added in order (frame index = order of addition); keyframes are
+    stored absolutely, other frames as ``T_kf_c`` relative to the last keyframe before them (frames before any
+    keyframe absolutely)."""
 
     def __init__(self) -> None:
         self._kf: dict[int, np.ndarray] = {}       # keyframe frame index -> T_w_kf
@@ -50,14 +55,26 @@ class AnchoredTrajectory:
             a = self._anchor[idx]
             self._rel[idx] = T_w_c.copy() if a is None else inv(self._kf[a]) @ T_w_c
 
-    def update_keyframes(self, poses: dict[int, np.ndarray]) -> None:
-        """Move keyframes (frame index -> new ``T_w_kf``); their non-keyframes follow rigidly."""
+    def apply_corrections(self, poses: dict[int, np.ndarray], min_shift_m: float = 0.0,
+                          min_shift_deg: float = 0.0) -> dict[int, tuple[float, float]]:
+        """Move keyframes to corrected poses (frame index -> ``T_w_kf``); their non-keyframes follow rigidly.
+        Only keyframes that moved by more than ``min_shift_m`` or ``min_shift_deg`` are written.
+
+        Returns ``{keyframe: (shift m, shift deg)}`` of the keyframes written.
+        """
+        moved = {}
         for k, T in poses.items():
-            if k in self._kf:
+            if k not in self._kf:
+                continue
+            d_t, d_r = pose_error(self._kf[k], T)
+            if d_t > min_shift_m or d_r > min_shift_deg:
                 self._kf[k] = np.asarray(T, dtype=np.float64).copy()
+                moved[k] = (d_t, d_r)
+        return moved
 
     def pose(self, idx: int) -> np.ndarray:
-        """Current ``T_w_c`` of frame ``idx`` (4x4 float64)."""
+        """Current ``T_w_c`` of frame ``idx`` (4x4 float64; negative indices count from the end)."""
+        idx = idx % len(self._rel) if idx < 0 else idx
         a = self._anchor[idx]
         return self._rel[idx].copy() if a is None else self._kf[a] @ self._rel[idx]
 
@@ -68,5 +85,10 @@ class AnchoredTrajectory:
     def keyframe_ids(self) -> list[int]:
         return sorted(self._kf)
 
+    @property
+    def last_keyframe(self) -> int | None:
+        return self._last_kf
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """``{keyframe index: T_w_kf}`` (copies), in index order."""
         return {k: v.copy() for k, v in sorted(self._kf.items())}

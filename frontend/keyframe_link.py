@@ -1,0 +1,98 @@
+"""The frontend's own relative pose between consecutive keyframes (the graph's odometry factor).
+
+Between keyframes i and j the frontend measures the motion twice over: as the chain of its frame-to-frame
+odometry increments (:attr:`OdometryResult.T_prev_c`, each with its information) and, at j, by registering
+j directly to i starting from that chain. Both come from the frontend alone -- the field never seeds them -- so
+the factor is independent of the field's estimate of the same motion. They are not independent of each other
+(same images), so one is used: the direct registration when it passes its gates, else the chain, whose
+covariance is propagated increment by increment (:func:`lrslam.geometry.propagate_covariance`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from lrslam.frontend.odometry import OdometryResult
+from lrslam.frontend.registration import OdometryConfig, register_rgbd
+from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
+from lrslam.geometry import propagate_covariance
+
+__all__ = ["KeyframeLinkMeasurement", "KeyframeLink"]
+
+log = logging.getLogger(__name__)
+
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class KeyframeLinkMeasurement:
+    """``T_i_j`` (4, 4): keyframe j's camera in keyframe i's; ``information`` (6, 6), right perturbation,
+    ``[rotation, translation]``; ``source``: ``"registration"`` or ``"chain"``; ``frames``: odometry increments
+    chained."""
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+    source: str
+    frames: int
+
+
+def _covariance(information: np.ndarray) -> np.ndarray:
+    info = 0.5 * (information + information.T)
+    return np.linalg.inv(info + _EPS * np.eye(6))
+
+
+class KeyframeLink:
+    """Accumulates the odometry between keyframes and measures each new keyframe against the previous one.
+
+    Args:
+        cfg: registration settings of the keyframe-to-keyframe registration (its gates decide whether the
+            registration or the chain is used).
+    """
+
+    def __init__(self, cfg: OdometryConfig):
+        self.cfg = cfg
+        self._kf_id: int | None = None
+        self._kf_view: RGBDView | None = None
+        self._T = np.eye(4)
+        self._cov = np.zeros((6, 6))
+        self._frames = 0
+
+    def start(self, kf_id: int, frame: FrameLike) -> None:
+        """Make ``kf_id`` (images ``frame``) the keyframe the next measurement starts from."""
+        self._kf_id, self._kf_view = int(kf_id), RGBDView(*_images(frame))
+        self._T, self._cov, self._frames = np.eye(4), np.zeros((6, 6)), 0
+
+    def accumulate(self, odo: OdometryResult) -> None:
+        """Chain one frame's odometry increment (``odo.T_prev_c`` with ``odo.information``)."""
+        self._cov = propagate_covariance(self._T, self._cov, odo.T_prev_c, _covariance(odo.information))
+        self._T = self._T @ odo.T_prev_c
+        self._frames += 1
+
+    def measure(self, kf_id: int, frame: FrameLike) -> KeyframeLinkMeasurement | None:
+        """The frontend's relative pose from the previous keyframe to ``kf_id`` (images ``frame``); then
+        ``kf_id`` becomes the previous keyframe. None before :meth:`start`."""
+        if self._kf_id is None:
+            self.start(kf_id, frame)
+            return None
+        view = RGBDView(*_images(frame))
+        reg = register_rgbd(view, self._kf_view, self._T, self.cfg)
+        if reg.ok:
+            out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), reg.T_tgt_src, reg.information, "registration",
+                                          self._frames)
+        else:
+            log.info("keyframe %d -> %d registration rejected (%s): using the odometry chain of %d frames",
+                     self._kf_id, kf_id, reg.reason, self._frames)
+            out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), self._T.copy(),
+                                          np.linalg.inv(self._cov + _EPS * np.eye(6)), "chain", self._frames)
+        self.start(kf_id, frame)
+        return out
+
+
+def _images(frame: FrameLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    v = as_view(frame)
+    return v.rgb, v.depth, v.K

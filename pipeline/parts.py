@@ -1,0 +1,299 @@
+"""The parts a SLAM run is built from, and the factory that builds the runner from config.
+
+- seeder: where a frame's pose starts -- :class:`ConstantVelocitySeeder` (ESLAM) or :class:`OdometrySeeder`
+  (the frontend's frame-to-frame motion applied to the last pose);
+- refiner: :class:`FieldRefiner` (LRSLAM tracking by rendering loss) or :class:`NoRefiner`;
+- keyframer: :class:`EveryNKeyframer` (ESLAM) or :class:`PolicyKeyframer` (motion / overlap);
+- mapper: :class:`FieldMapper` (joint field + window-pose optimisation, re-maps), present with the field;
+- backend: :class:`GraphBackend` (GTSAM pose graph with frontend, field and loop factors) or none.
+
+``field``, ``frontend`` and ``fused`` are presets of this factory (:data:`lrslam.pipeline.config.MODE_PRESETS`).
+Parts keep no pose copies: they receive the poses they need from the runner's :class:`Trajectory`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from lrslam.frontend.frame import Frame
+from lrslam.geometry import diagonal_information, inv, pose_from_tum, pose_to_tum
+from lrslam.pipeline.config import BackendConfig, RunConfig
+from lrslam.pipeline.trajectory import Trajectory
+
+__all__ = ["Seed", "Refinement", "Correction", "ConstantVelocitySeeder", "OdometrySeeder", "FieldRefiner",
+           "NoRefiner", "EveryNKeyframer", "PolicyKeyframer", "FieldMapper", "GraphBackend", "build_parts"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Seed:
+    """A frame's starting pose ``T_w_c`` (4, 4); ``ok`` False when the seeder fell back to a guess;
+    ``odometry``: the frontend's result for the frame (None without one)."""
+
+    T_w_c: np.ndarray
+    ok: bool = True
+    odometry: object | None = None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The refined pose ``T_w_c`` (4, 4) (the seed when not ``ok`` or not ``accepted``); ``information`` (6, 6)
+    of it given the field (None without one); ``ok`` None when there is no refiner."""
+
+    T_w_c: np.ndarray
+    ok: bool | None = None
+    accepted: bool = False
+    information: np.ndarray | None = None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What the backend did at a keyframe: ``poses`` its solution (``{kf: T_w_c}``, empty when it did not
+    solve), ``loops`` verified loop closures added, ``solved``."""
+
+    poses: dict = dc_field(default_factory=dict)
+    loops: int = 0
+    solved: bool = False
+
+
+def _constant_velocity(traj: Trajectory) -> np.ndarray:
+    """The last motion repeated on SE(3): ``T_{i-1} inv(T_{i-2}) T_{i-1}``."""
+    if len(traj) < 2:
+        return traj.pose(-1)
+    T_prev, T_prev2 = traj.pose(-1), traj.pose(-2)
+    return T_prev @ inv(T_prev2) @ T_prev
+
+
+def _linear_velocity(traj: Trajectory) -> np.ndarray:
+    """ESLAM's constant-speed guess: ``2 p_{i-1} - p_{i-2}`` on the 7-vector ``p = (t, q)`` (quaternion
+    renormalised), i.e. a linear extrapolation of translation and quaternion, not a motion repeated on SE(3)."""
+    if len(traj) < 2:
+        return traj.pose(-1)
+    p1, p0 = pose_to_tum(traj.pose(-1)), pose_to_tum(traj.pose(-2))
+    if np.dot(p1[3:], p0[3:]) < 0:  # same hemisphere, as for an interpolation
+        p0[3:] = -p0[3:]
+    return pose_from_tum(2.0 * p1 - p0)
+
+
+# -------------------------------------------------------------------------------------------------- seeders
+class ConstantVelocitySeeder:
+    """The field-only seed: ``linear`` (ESLAM's linear extrapolation of translation and quaternion) or ``se3``
+    (the last relative motion repeated)."""
+
+    def __init__(self, kind: str = "linear") -> None:
+        self.guess = _linear_velocity if kind == "linear" else _constant_velocity
+
+    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
+        pass
+
+    def seed(self, frame: Frame, traj: Trajectory) -> Seed:
+        return Seed(self.guess(traj))
+
+
+class OdometrySeeder:
+    """The frontend's frame-to-frame motion (:class:`lrslam.frontend.odometry.Odometry`, its own estimate)
+    applied to the trajectory's last pose; constant velocity when the odometry failed."""
+
+    def __init__(self, odometry) -> None:
+        self.odometry = odometry
+
+    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
+        self.odometry.reset(T_w_c0, frame)
+
+    def seed(self, frame: Frame, traj: Trajectory) -> Seed:
+        res = self.odometry.track(frame)
+        if res.ok:
+            return Seed(traj.pose(-1) @ res.T_prev_c, True, res)
+        log.info("frame %d: odometry failed (%s); constant-velocity seed", frame.index, res.reason)
+        return Seed(_constant_velocity(traj), False, res, f"odometry failed: {res.reason}")
+
+    def frontend_pose(self) -> np.ndarray:
+        """The frontend's own pose of the last frame (odometry alone)."""
+        return self.odometry.last_pose
+
+
+# -------------------------------------------------------------------------------------------------- refiners
+class NoRefiner:
+    def refine(self, frame: Frame, seed: Seed) -> Refinement:
+        return Refinement(seed.T_w_c)
+
+
+class FieldRefiner:
+    """LRSLAM tracking against the frozen field from the seed (``field.tracking.accept_if_better`` keeps the
+    seed unless the refinement lowers the loss on the same rays)."""
+
+    def __init__(self, field) -> None:
+        self.field = field
+
+    def refine(self, frame: Frame, seed: Seed) -> Refinement:
+        res = self.field.track(frame.rgb, frame.depth, seed.T_w_c)
+        if not res.ok:
+            return Refinement(seed.T_w_c, False, False, None, f"field tracking fell back to the seed: {res.reason}")
+        return Refinement(res.T_w_c, True, res.accepted, res.information, res.reason)
+
+
+# -------------------------------------------------------------------------------------------------- keyframers
+class EveryNKeyframer:
+    """ESLAM's rule: every ``n``-th frame is a keyframe."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def start(self, frame: Frame) -> None:
+        pass
+
+    def is_keyframe(self, frame: Frame, T_w_c: np.ndarray, traj: Trajectory) -> bool:
+        return frame.index % self.n == 0
+
+
+class PolicyKeyframer:
+    """Motion / overlap policy (:class:`lrslam.frontend.keyframes.KeyframePolicy`), given the last keyframe's
+    current pose from the trajectory."""
+
+    def __init__(self, policy) -> None:
+        self.policy = policy
+
+    def start(self, frame: Frame) -> None:
+        self.policy.add_keyframe(frame.index, frame.depth, frame.K)
+
+    def is_keyframe(self, frame: Frame, T_w_c: np.ndarray, traj: Trajectory) -> bool:
+        last = traj.last_keyframe
+        ok, _ = self.policy.is_keyframe(frame.index, T_w_c, None if last is None else traj.pose(last),
+                                        frame.depth, frame.K)
+        return bool(ok)
+
+
+# -------------------------------------------------------------------------------------------------- mapper
+class FieldMapper:
+    """Field mapping on keyframes and every ``map_every`` frames; re-maps after corrections; the mesh."""
+
+    def __init__(self, field, map_every: int) -> None:
+        self.field = field
+        self.map_every = map_every
+
+    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
+        self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0)
+
+    def due(self, frame: Frame, is_keyframe: bool) -> bool:
+        return is_keyframe or frame.index % self.map_every == 0
+
+    def map(self, frame: Frame, T_w_c: np.ndarray, keyframe_poses: dict, add_keyframe: bool) -> dict:
+        return self.field.map(frame.index, frame.rgb, frame.depth, T_w_c, keyframe_poses, add_keyframe)
+
+    def remap(self, keyframe_poses: dict, ids: list[int]) -> dict:
+        return self.field.remap(keyframe_poses, ids)
+
+    def mesh(self, keyframe_poses: dict, resolution: float | None):
+        return self.field.extract_mesh(keyframe_poses, resolution)
+
+
+# -------------------------------------------------------------------------------------------------- backend
+class GraphBackend:
+    """Keyframe pose graph (see :class:`lrslam.pipeline.config.BackendConfig` for the factor sets and the
+    solve / write-back rules). Keeps factors, the loop closer's keyframe images and the frontend's chain since
+    the last keyframe; every pose comes from the trajectory."""
+
+    def __init__(self, cfg: BackendConfig, graph, loop_closer, link, field_default_information: np.ndarray):
+        self.cfg = cfg
+        self.graph, self.loop_closer, self.link = graph, loop_closer, link
+        self._default_info = field_default_information
+        self._last: int | None = None
+        self.n_loops = self.n_solves = 0
+
+    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
+        self.graph.add_keyframe(frame.index, T_w_c0)
+        self.loop_closer.add_keyframe(frame.index, frame)
+        self.link.start(frame.index, frame)
+        self._last = frame.index
+
+    def on_frame(self, seed: Seed) -> None:
+        """Chain the frontend's increment of every frame (the odometry factor's fallback)."""
+        if seed.odometry is not None:
+            self.link.accumulate(seed.odometry)
+
+    def on_keyframe(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> Correction:
+        """Add keyframe ``frame.index`` (its pose in ``poses``, every keyframe's current ``T_w_c``) with its
+        factors; solve when a loop brings a real correction (or at every keyframe); return the solution."""
+        i, j, factors = self._last, frame.index, self.cfg.factors
+        self.graph.add_keyframe(j)
+        # 1. Field factor: the trajectory's relative pose, with the tracker's information.
+        if "field" in factors:
+            info = information if information is not None else self._default_info
+            self.graph.add_field_relative(i, j, inv(poses[i]) @ poses[j], info)
+        # 2. Frontend factor: its own keyframe-to-keyframe estimate.
+        link = self.link.measure(j, frame)
+        if "odometry" in factors and link is not None:
+            self.graph.add_odometry(link.i, link.j, link.T_i_j, link.information)
+        # 3. Loops against earlier keyframes.
+        loops = []
+        if "loop" in factors:
+            loops = self.loop_closer.detect(j, frame, poses)
+            for lc in loops:
+                self.graph.add_loop(lc.i, lc.j, lc.T_i_j, lc.information)
+        self.loop_closer.add_keyframe(j, frame)
+        self._last = j
+        self.n_loops += len(loops)
+        real = [lc for lc in loops if lc.correction_m > self.cfg.loop_min_correction_m
+                or lc.correction_deg > self.cfg.loop_min_correction_deg]
+        if len(loops) > len(real):
+            log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", j,
+                     len(loops) - len(real))
+        if not (real or self.cfg.optimise == "every_keyframe"):
+            return Correction({}, len(loops), False)
+        # 4. Solve from the trajectory's poses, field factors re-stated from them (the graph never reverts the
+        #    mapper's refinements: only loops and the frontend's measurements move poses).
+        for a, b in zip(list(poses)[:-1], list(poses)[1:]):
+            self.graph.set_measurement("field", a, b, inv(poses[a]) @ poses[b])
+        self.n_solves += 1
+        return Correction(self.graph.optimise(poses), len(loops), True)
+
+
+# -------------------------------------------------------------------------------------------------- factory
+@dataclass
+class Parts:
+    seeder: object
+    refiner: object
+    keyframer: object
+    mapper: FieldMapper | None
+    backend: GraphBackend | None
+    field: object | None
+
+
+def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray) -> Parts:
+    """Build the configured parts (``cfg.parts``); each gets its own config section only."""
+    p = cfg.parts
+    field = None
+    if p.refiner == "field":
+        from lrslam.field.slam import FieldSLAM
+
+        field = FieldSLAM(cfg.field, np.asarray(bound, dtype=np.float64), K, height, width)
+    if p.seeder == "odometry":
+        from lrslam.frontend.odometry import Odometry
+
+        seeder = OdometrySeeder(Odometry(cfg.odometry, K, height, width))
+    else:
+        seeder = ConstantVelocitySeeder(cfg.schedule.velocity_model)
+    refiner = FieldRefiner(field) if field is not None else NoRefiner()
+    if p.keyframer == "policy":
+        from lrslam.frontend.keyframes import KeyframePolicy
+
+        keyframer = PolicyKeyframer(KeyframePolicy(cfg.keyframes))
+    else:
+        keyframer = EveryNKeyframer(cfg.schedule.keyframe_every)
+    mapper = FieldMapper(field, cfg.schedule.map_every) if field is not None else None
+    backend = None
+    if p.backend == "graph":
+        from lrslam.backend.graph import PoseGraph
+        from lrslam.frontend.keyframe_link import KeyframeLink
+        from lrslam.frontend.loop_closure import LoopCloser
+
+        g = cfg.graph
+        backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure), KeyframeLink(cfg.odometry),
+                               diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation))
+    return Parts(seeder, refiner, keyframer, mapper, backend, field)
