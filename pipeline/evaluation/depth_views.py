@@ -43,11 +43,13 @@ def nice_intrinsics(width: int = NICE_WIDTH, height: int = NICE_HEIGHT, focal: f
 
 def bbox_views(gt_mesh: trimesh.Trimesh, n: int, seed: int = 0, unseen_points: np.ndarray | None = None,
                K: np.ndarray | None = None, width: int = NICE_WIDTH, height: int = NICE_HEIGHT,
-               min_gt_fraction: float = 0.1, max_tries: int = 100) -> tuple[np.ndarray, int]:
+               min_gt_fraction: float = 0.1, max_tries: int = 100,
+               max_unseen: int = 20_000) -> tuple[np.ndarray, int]:
     """``n`` NICE-SLAM virtual cameras ``T_w_c (n, 4, 4)`` (OpenCV axes) in ``gt_mesh``'s bounding box.
 
     ``unseen_points (P, 3)`` world metres: GT points no input camera saw; views that project any of them are
-    re-drawn. Returns ``(poses, n_fallback)``: ``n_fallback`` views were accepted after ``max_tries`` draws
+    re-drawn (tested on at most ``max_unseen`` of them, drawn at random). Returns ``(poses, n_fallback)``:
+    ``n_fallback`` views were accepted after ``max_tries`` draws
     (the draw with the fewest unseen points in sight, among those seeing GT surface when any did).
     """
     gt = load_mesh(gt_mesh, "ground-truth mesh")
@@ -60,6 +62,8 @@ def bbox_views(gt_mesh: trimesh.Trimesh, n: int, seed: int = 0, unseen_points: n
     half = 0.5 * np.asarray(extents, dtype=np.float64) * np.array([0.3, 0.7, 0.7])
     rng = np.random.default_rng(seed)
     unseen = None if unseen_points is None or len(unseen_points) == 0 else np.asarray(unseen_points, np.float64)
+    if unseen is not None and len(unseen) > max_unseen:   # a point sample, like NICE-SLAM's *_pc_unseen.npy
+        unseen = unseen[rng.choice(len(unseen), max_unseen, replace=False)]
     out, n_fallback = [], 0
     for _ in range(n):
         best, best_key = None, None
