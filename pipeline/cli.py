@@ -91,7 +91,7 @@ def params(
     bound: Optional[str] = typer.Option(None, help="Override bound: xmin,xmax,ymin,ymax,zmin,zmax (metres)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
 ) -> None:
-    """Print the parameter table (f_g, f_a, total, as the paper's Table 1) for a config's bound."""
+    """Print the parameter table (f_g, f_a, f_g + f_a, decoders, all: the paper's Table 1) for a config's bound."""
     import numpy as np
 
     from lrslam.field.model import SceneModel
@@ -112,15 +112,16 @@ def params(
     for name in names:
         rcfg = build_config(config, name)
         counts = SceneModel(b, rcfg.field.model).parameter_count()
-        rows[name] = counts
+        rows[name] = {**counts, "all": counts["total"] + counts["decoders"]}
     if as_json:
         typer.echo(json.dumps({"bound": b.tolist(), "parameters": rows}, indent=2))
         return
     typer.echo(f"bound {b.tolist()} (metres)")
-    typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'total':>12}{'decoders':>10}")
+    typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'total':>12}{'decoders':>10}{'all':>12}")
     for name, c in rows.items():
         typer.echo(f"{name:<16}{c['geometry'] / 1e6:>11.3f}M{c['appearance'] / 1e6:>11.3f}M"
-                   f"{c['total'] / 1e6:>11.3f}M{c.get('decoders', 0):>10,}")
+                   f"{c['total'] / 1e6:>11.3f}M{c.get('decoders', 0):>10,}{c['all'] / 1e6:>11.3f}M")
+    typer.echo("total = f_g + f_a; all = total + decoders (the paper's Table 1 'Total' includes the decoders)")
 
 
 def batch(

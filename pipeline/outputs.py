@@ -25,33 +25,29 @@ def _mesh(result, seq, poses, cfg, timer):
 
 
 def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> None:
-    from lrslam.pipeline.evaluation.ate import compute_ate
+    """ATE (nearest ground-truth sample, as ``lrslam eval ate`` and evo) of the trajectory and of ``extra``
+    (name -> (N, 4, 4) or None: the seeds, the frontend's own estimate); mesh metrics (ESLAM protocol) when the
+    sequence has a GT mesh -- evaluated un-moved when the run started in the GT world."""
+    from lrslam.pipeline.evaluation.ate import compute_run_ate
 
-    gt = seq.gt_poses()
-    if gt is None or not np.any(np.isfinite(gt[:, 0, 0])):
+    res = compute_run_ate(timestamps, poses, seq)
+    if res is None:
         log.info("no ground truth: skipping ATE")
         return
-    ok = np.isfinite(gt).all(axis=(1, 2))
-    res = compute_ate(timestamps, poses, np.asarray(seq.timestamps)[ok], gt[ok])
     metrics.update(ate_rmse_cm=res.rmse_cm, ate_mean_cm=res.mean_cm, ate_median_cm=res.median_cm,
                    ate_max_cm=res.max_cm, ate_matched=res.n_matched)
-    for name, other in extra.items():  # the seeds, the frontend's own estimate
+    for name, other in extra.items():
         if other is not None:
-            metrics[f"{name}_ate_rmse_cm"] = compute_ate(timestamps, other, np.asarray(seq.timestamps)[ok],
-                                                         gt[ok]).rmse_cm
+            metrics[f"{name}_ate_rmse_cm"] = compute_run_ate(timestamps, other, seq).rmse_cm
     gt_mesh = getattr(seq, "gt_mesh_path", None)
     if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
-        from lrslam.pipeline.evaluation.mesh_metrics import cull_mesh, load_mesh, reconstruction_metrics
+        from lrslam.pipeline.evaluation.mesh_eval import evaluate_run_mesh
+        from lrslam.pipeline.evaluation.mesh_protocol import get_protocol
 
-        gt_m = load_mesh(gt_mesh)
         f0 = seq[0]
-        # the estimate lives in its own world: move it into the GT world with the trajectory's ATE alignment,
-        # then cull both meshes against the ground-truth trajectory's frusta (ESLAM protocol)
-        est = mesh.copy().apply_transform(res.T_align)
-        stride = max(1, int(ok.sum()) // 50)
-        est_c = cull_mesh(est, gt[ok], f0.K, f0.width, f0.height, stride=stride)
-        gt_c = cull_mesh(gt_m, gt[ok], f0.K, f0.width, f0.height, stride=stride)
-        rec = reconstruction_metrics(est_c, gt_c, n_points=cfg.output.eval_mesh_points)
+        rec = evaluate_run_mesh(mesh, gt_mesh, seq.gt_poses(), f0.K, f0.width, f0.height, T_align=res.T_align,
+                                world_is_gt=cfg.initial_pose == "gt" and f0.T_w_c_gt is not None,
+                                n_points=cfg.output.eval_mesh_points, protocol=get_protocol("eslam", depth_views=0))
         metrics.update({f"mesh_{k}": v for k, v in rec.items()})
 
 

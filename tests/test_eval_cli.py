@@ -77,11 +77,12 @@ def test_eval_mesh(tmp_path):
     # 50k samples on 0.36 m^2: sample spacing ~1.3 mm, so the 1 cm offset reads as ~1.01 cm.
     gt = grid_plane_file(tmp_path / "gt.ply", 1.0, half=0.3)
     est = grid_plane_file(tmp_path / "est.ply", 1.01, half=0.3)
-    res = runner.invoke(eval_app, ["mesh", est, gt, "--n-points", "50000", "--json"])
+    no_icp = ["--no-icp", "--depth-views", "0"]   # a rigid 1 cm offset is what ICP removes
+    res = runner.invoke(eval_app, ["mesh", est, gt, "--n-points", "50000", *no_icp, "--json"])
     assert res.exit_code == 0, res.output
     out = json.loads(res.output)
     assert out["accuracy_cm"] == pytest.approx(1.0, abs=0.03) and out["completion_ratio"] == 100.0
-    res = runner.invoke(eval_app, ["mesh", est, gt, "--n-points", "2000"])
+    res = runner.invoke(eval_app, ["mesh", est, gt, "--n-points", "2000", *no_icp])
     assert res.output.startswith("Accuracy: ") and "Completion ratio: 100.00 % (< 5 cm)" in res.output
 
 
@@ -91,7 +92,8 @@ def test_eval_mesh_with_culling_and_depth(tmp_path):
     traj = write_tum(tmp_path / "traj.txt", np.arange(3) * 0.1,
                      np.stack([make_pose(np.eye(3), [0.05 * i, 0, 0]) for i in range(3)]))
     cam = ["--traj", str(traj), "--intrinsics", "40,40,31.5,23.5", "--size", "64,48"]
-    res = runner.invoke(eval_app, ["mesh", est, gt, *cam, "--n-points", "20000", "--depth-views", "4", "--json"])
+    res = runner.invoke(eval_app, ["mesh", est, gt, *cam, "--n-points", "20000", "--depth-views", "4",
+                                   "--depth-l1", "trajectory", "--no-icp", "--json"])
     assert res.exit_code == 0, res.output
     out = json.loads(res.output)
     # Culling to the frustums keeps |x| <~ 0.9 m, |y| <~ 0.6 m of the 4 m planes: ~1/6 of their 200 faces.
@@ -117,7 +119,7 @@ def test_eval_mesh_moves_estimate_into_gt_world(tmp_path, rng):
     gt_poses = np.stack([make_pose(np.eye(3), [0.05 * np.cos(i), 0.05 * np.sin(i), 0.02 * i]) for i in range(20)])
     traj = write_tum(tmp_path / "traj.txt", ts, gt_poses)
     est_traj = write_tum(tmp_path / "est_traj.txt", ts, T @ gt_poses)
-    base = ["mesh", str(tmp_path / "est.ply"), gt, "--n-points", "50000", "--json"]
+    base = ["mesh", str(tmp_path / "est.ply"), gt, "--n-points", "50000", "--no-icp", "--depth-views", "0", "--json"]
     cam = ["--traj", str(traj), "--intrinsics", "40,40,31.5,23.5", "--size", "64,48"]
     moved = json.loads(runner.invoke(eval_app, base).output)
     aligned = json.loads(runner.invoke(eval_app, base + cam + ["--est-traj", str(est_traj)]).output)

@@ -4,6 +4,11 @@ Protocol (as ESLAM / NICE-SLAM and TUM's ``evaluate_ate.py``): associate estimat
 timestamp (:func:`~lrslam.pipeline.evaluation.association.associate`), align the estimated camera positions to
 the ground-truth ones with a rigid SE(3) Umeyama fit (no scale), then take statistics of the per-frame
 translation error ``||p_gt - (R p_est + t)||``. Cross-checked against ``evo_ape`` in the tests.
+
+A run and ``lrslam eval ate`` use the same association (the nearest ground-truth *sample*, see
+:mod:`~lrslam.pipeline.evaluation.association`): a run evaluates with :func:`compute_run_ate`, which reads the
+dataset's raw ground truth (:func:`ground_truth_samples`), not the reader's per-frame interpolated poses, so
+``lrslam eval ate run/trajectory.txt <dataset>/groundtruth.txt`` reproduces the run's number.
 """
 
 from __future__ import annotations
@@ -22,7 +27,12 @@ from lrslam.pipeline.evaluation.association import associate
 from lrslam.trajectory_io import TrajectoryFormatError, read_tum
 
 __all__ = ["AteResult", "RpeResult", "compute_ate", "compute_rpe", "ate_from_files", "read_trajectory",
-           "matched_poses"]
+           "matched_poses", "ground_truth_samples", "compute_run_ate", "RAW_GROUND_TRUTH_FILES"]
+
+# Readers whose dataset holds a ground-truth trajectory sampled independently of the frames (the reader
+# interpolates it at frame times): reader name -> file in the dataset folder. Other readers have one
+# ground-truth pose per frame, which is already the raw sample.
+RAW_GROUND_TRUTH_FILES = {"tum": "groundtruth.txt"}
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +153,36 @@ def ate_from_files(est_path: str | Path, gt_path: str | Path, max_dt: float = 0.
     est_ts, est_poses = read_trajectory(est_path)
     gt_ts, gt_poses = read_trajectory(gt_path)
     return compute_ate(est_ts, est_poses, gt_ts, gt_poses, max_dt=max_dt, align=align)
+
+
+def ground_truth_samples(seq) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ground truth a run is evaluated against, as raw samples: ``(timestamps (M,) s, T_w_c (M, 4, 4))``.
+
+    ``seq`` is a dataset :class:`~lrslam.frontend.datasets.Sequence`. For readers listed in
+    :data:`RAW_GROUND_TRUTH_FILES` (TUM) this is the dataset's own trajectory file as written (100 Hz motion
+    capture, all of it: association picks the samples); otherwise the per-frame ground truth of the selected
+    frames, rows without ground truth dropped. None when the sequence has no ground truth.
+    """
+    name = RAW_GROUND_TRUTH_FILES.get(getattr(seq, "name", ""))
+    if name is not None and (Path(seq.root) / name).is_file():
+        return read_trajectory(Path(seq.root) / name)
+    gt = seq.gt_poses()
+    if gt is None:
+        return None
+    ok = np.all(np.isfinite(gt), axis=(1, 2))
+    if not ok.any():
+        return None
+    return np.asarray(seq.timestamps, dtype=np.float64)[ok], gt[ok]
+
+
+def compute_run_ate(timestamps: np.ndarray, poses: np.ndarray, seq, max_dt: float = 0.02,
+                    align: bool = True) -> AteResult | None:
+    """ATE of a run's trajectory (``timestamps (N,)`` s, ``poses (N, 4, 4)`` ``T_w_c``) on sequence ``seq``,
+    with the association of ``lrslam eval ate`` (nearest ground-truth sample). None without ground truth."""
+    gt = ground_truth_samples(seq)
+    if gt is None:
+        return None
+    return compute_ate(timestamps, poses, *gt, max_dt=max_dt, align=align)
 
 
 def read_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

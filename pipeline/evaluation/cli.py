@@ -49,26 +49,46 @@ def mesh(
         "--est-traj", help="estimated trajectory (TUM): move the estimated mesh into the GT world with its ATE "
         "alignment to --traj")] = None,
     threshold: Annotated[float, typer.Option("--threshold", help="completion-ratio threshold [m]")] = 0.05,
-    n_points: Annotated[int, typer.Option("--n-points", help="points sampled on each mesh")] = 200_000,
-    occlusion: Annotated[bool, typer.Option("--occlusion/--no-occlusion", help="cull occluded faces")] = True,
+    protocol: Annotated[str, typer.Option("--protocol", help="eslam | nice-slam | lrslam-v0 (ours before issue "
+                                          "11); the options below override its fields")] = "eslam",
+    n_points: Annotated[Optional[int], typer.Option(
+        "--n-points", help="points sampled on each mesh [eslam 450000, nice-slam 200000]")] = None,
+    face_rule: Annotated[Optional[str], typer.Option(
+        "--face-rule", help="keep a face when any|all of its vertices were seen [any]")] = None,
+    icp: Annotated[Optional[bool], typer.Option(
+        "--icp/--no-icp", help="ICP-refine the estimate onto the GT (0.1 m, point-to-point) [on]")] = None,
+    occlusion: Annotated[Optional[bool], typer.Option(
+        "--occlusion/--no-occlusion", help="cull occluded faces [eslam: on, 0.06 m; nice-slam: off]")] = None,
     max_depth: Annotated[Optional[float], typer.Option("--max-depth", help="culling range [m]")] = None,
-    stride: Annotated[int, typer.Option("--stride", help="use every n-th pose for culling")] = 1,
-    depth_views: Annotated[int, typer.Option(
-        "--depth-views", help="random views near --traj for depth L1 (0: skip)")] = 0,
+    stride: Annotated[Optional[int], typer.Option("--stride", help="use every n-th pose for culling [1]")] = None,
+    depth_views: Annotated[Optional[int], typer.Option("--depth-views", help="depth-L1 views (0: skip) [1000]")] = None,
+    depth_l1: Annotated[Optional[str], typer.Option(
+        "--depth-l1", help="bbox (NICE-SLAM: random views in the GT box) | trajectory (views near --traj)")] = None,
     seed: Annotated[int, typer.Option("--seed", help="sampling seed")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="print a JSON object instead of text")] = False,
 ) -> None:
-    """Accuracy / completion (cm), completion ratio (%) and optional depth L1 (cm), as NICE-SLAM / ESLAM.
+    """Accuracy / completion (cm), completion ratio (%) and depth L1 (cm), by default with ESLAM's protocol.
 
-    With --traj, --intrinsics and --size both meshes are culled against the camera frustums before sampling;
-    the depth L1 compares the culled GT with the un-culled estimate from views near the trajectory.
+    Default ``--protocol eslam`` (idiap/ESLAM ``eval_recon.py`` / ``cull_mesh.py``): with --traj, --intrinsics
+    and --size both meshes are culled against every camera (a face is kept when any vertex is seen; occlusion
+    tolerance 0.06 m), the estimate is ICP-refined onto the GT (0.1 m), 450,000 points are sampled per mesh and
+    the depth L1 averages 1000 NICE-SLAM views in the GT bounding box (all pixels). ``nice-slam``: no occlusion
+    test, 200,000 points. ``lrslam-v0`` (ours before issue 11): faces with all vertices seen, at most 50 poses,
+    no ICP, 200,000 points, depth L1 from 100 views near the trajectory. See ``mesh_protocol``.
     """
+    from dataclasses import replace
+
     from lrslam.camera import intrinsics_matrix
     from lrslam.pipeline.evaluation.ate import compute_ate, read_trajectory
-    from lrslam.pipeline.evaluation.mesh_metrics import (cull_mesh, depth_l1, load_mesh, random_views,
-                                                         reconstruction_metrics)
+    from lrslam.pipeline.evaluation.mesh_eval import evaluate_mesh
+    from lrslam.pipeline.evaluation.mesh_metrics import load_mesh
+    from lrslam.pipeline.evaluation.mesh_protocol import get_protocol
 
     # 1. Inputs.
+    proto = get_protocol(protocol, n_points=n_points, face_rule=face_rule, icp=icp, depth_views=depth_views,
+                         depth_l1=depth_l1, threshold=threshold)
+    if occlusion is not None:
+        proto = replace(proto, occlusion_tol=(proto.occlusion_tol or 0.03) if occlusion else None)
     camera_opts = {"--traj": traj, "--intrinsics": intrinsics, "--size": size}
     given = [k for k, v in camera_opts.items() if v is not None]
     if given and len(given) < 3:
@@ -76,8 +96,8 @@ def mesh(
         raise InputError(f"culling needs --traj, --intrinsics and --size together (missing {missing})")
     if est_traj is not None and traj is None:
         raise InputError("--est-traj needs --traj (the ground-truth trajectory to align it to)")
-    if depth_views > 0 and traj is None:
-        raise InputError("--depth-views needs --traj, --intrinsics and --size")
+    if proto.depth_views > 0 and proto.depth_l1 == "trajectory" and traj is None:
+        raise InputError("--depth-l1 trajectory needs --traj, --intrinsics and --size")
     est_mesh = load_mesh(est, "estimated mesh")
     gt_mesh = load_mesh(gt, "ground-truth mesh")
 
@@ -87,8 +107,8 @@ def mesh(
         res = compute_ate(*read_trajectory(est_traj), gt_ts, gt_poses)
         est_mesh = est_mesh.copy().apply_transform(res.T_align)
 
-    # 3. Culling against the trajectory, then metrics.
-    out: dict[str, float] = {}
+    # 3. Culling against the trajectory, ICP, metrics (mesh_eval.evaluate_mesh).
+    poses = K = width = height = None
     if traj is not None:
         _, poses = read_trajectory(traj)
         fx, fy, cx, cy = _floats(intrinsics, 4, "--intrinsics", "fx,fy,cx,cy")
@@ -97,15 +117,8 @@ def mesh(
             raise InputError(f"--size expects two positive integers W,H, got {size!r}")
         width, height = int(width), int(height)
         K = intrinsics_matrix(fx, fy, cx, cy)
-        cull = dict(K=K, width=width, height=height, max_depth=max_depth, occlusion=occlusion, stride=stride)
-        gt_mesh = cull_mesh(gt_mesh, poses, **cull)
-        if depth_views > 0:
-            # The estimate is not culled here: a view slightly off the trajectory may see observed GT surface
-            # whose estimated counterpart culling would drop (it lies outside every original frustum).
-            views = random_views(poses, depth_views, seed=seed)
-            out["depth_l1_cm"] = depth_l1(est_mesh, gt_mesh, K, width, height, views)
-        est_mesh = cull_mesh(est_mesh, poses, **cull)
-    out = {**reconstruction_metrics(est_mesh, gt_mesh, n_points=n_points, threshold=threshold, seed=seed), **out}
+    out = evaluate_mesh(est_mesh, gt_mesh, poses, K, width, height, protocol=proto, max_depth=max_depth,
+                        stride=stride, seed=seed)
 
     if as_json:
         typer.echo(json.dumps(out))
@@ -114,7 +127,7 @@ def mesh(
                f"Completion ratio: {out['completion_ratio']:.2f} % (< {100 * threshold:g} cm)  "
                f"({out['n_est']} / {out['n_gt']} faces)")
     if "depth_l1_cm" in out:
-        typer.echo(f"Depth L1: {out['depth_l1_cm']:.3f} cm ({depth_views} views)")
+        typer.echo(f"Depth L1: {out['depth_l1_cm']:.3f} cm ({proto.depth_views} views, {proto.depth_l1})")
 
 
 def _floats(text: str, n: int, option: str, form: str) -> list[float]:

@@ -1,9 +1,11 @@
 """Reconstruction metrics as NICE-SLAM / ESLAM: accuracy, completion, completion ratio, depth L1; mesh culling.
 
-Protocol: both meshes (in the ground-truth world, metres) are culled against the camera trajectory
-(:func:`cull_mesh`: faces outside every camera frustum or hidden in every view are dropped), then
+Building blocks (the protocols that combine them are :mod:`~lrslam.pipeline.evaluation.mesh_protocol`, the
+evaluation itself :mod:`~lrslam.pipeline.evaluation.mesh_eval`): :func:`cull_mesh` drops faces outside every
+camera frustum (or hidden in every view), :func:`icp_align` refines the estimate onto the ground truth,
 :func:`reconstruction_metrics` samples points on both surfaces and measures nearest-neighbour distances, and
-:func:`depth_l1` compares depth maps rendered from views near the trajectory (:func:`random_views`).
+:func:`depth_l1` compares depth maps rendered from given views (:func:`random_views`: near a trajectory;
+:mod:`~lrslam.pipeline.evaluation.depth_views`: NICE-SLAM's views in the GT bounding box).
 Depth rendering uses Open3D's ``RaycastingScene``; see DESIGN.md for its half-pixel principal-point offset.
 """
 
@@ -20,7 +22,8 @@ from lrslam.camera import check_intrinsics
 from lrslam.errors import InputError
 from lrslam.geometry import inv, random_pose
 
-__all__ = ["load_mesh", "reconstruction_metrics", "cull_mesh", "render_depth", "depth_l1", "random_views"]
+__all__ = ["load_mesh", "reconstruction_metrics", "cull_mesh", "seen_vertices", "keep_seen_faces", "icp_align",
+           "render_depth", "depth_l1", "random_views"]
 
 log = logging.getLogger(__name__)
 
@@ -76,24 +79,56 @@ def reconstruction_metrics(est_mesh: trimesh.Trimesh | str | Path, gt_mesh: trim
 
 def cull_mesh(mesh: trimesh.Trimesh | str | Path, poses: np.ndarray, K: np.ndarray, width: int, height: int,
               max_depth: float | None = None, occlusion: bool = True, stride: int = 1,
-              occlusion_tol: float = 0.03) -> trimesh.Trimesh:
-    """Drop the faces no camera saw (ESLAM / Co-SLAM culling). Returns a new mesh; the input is not modified.
+              occlusion_tol: float = 0.03, face_rule: str = "any") -> trimesh.Trimesh:
+    """Drop the faces no camera saw (ESLAM / NICE-SLAM culling). Returns a new mesh; the input is not modified.
+
+    Vertices are tested by :func:`seen_vertices` (same arguments). ``face_rule="any"`` keeps a face when any of
+    its vertices was seen by any camera (ESLAM / NICE-SLAM ``cull_mesh``: a face goes only when all its vertices
+    are unseen); ``"all"`` keeps it only when all three were seen (stricter; trims the rim of the observed
+    region). Unreferenced vertices are removed.
+    """
+    if face_rule not in ("any", "all"):
+        raise InputError(f"face_rule must be 'any' or 'all', got {face_rule!r}")
+    mesh = load_mesh(mesh)
+    if _is_empty(mesh):
+        _intrinsics(K, width, height)
+        return mesh.copy()
+    seen = seen_vertices(mesh, poses, K, width, height, max_depth=max_depth, occlusion=occlusion, stride=stride,
+                         occlusion_tol=occlusion_tol)
+    return keep_seen_faces(mesh, seen, face_rule)
+
+
+def keep_seen_faces(mesh: trimesh.Trimesh, seen: np.ndarray, face_rule: str = "any") -> trimesh.Trimesh:
+    """A copy of ``mesh`` with the faces kept by ``face_rule`` given the per-vertex ``seen (V,)`` mask."""
+    if face_rule not in ("any", "all"):
+        raise InputError(f"face_rule must be 'any' or 'all', got {face_rule!r}")
+    keep = seen[mesh.faces].any(axis=1) if face_rule == "any" else seen[mesh.faces].all(axis=1)
+    out = mesh.copy()
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    log.debug("cull_mesh: kept %d of %d faces", int(keep.sum()), len(keep))
+    return out
+
+
+def seen_vertices(mesh: trimesh.Trimesh | str | Path, poses: np.ndarray, K: np.ndarray, width: int, height: int,
+                  max_depth: float | None = None, occlusion: bool = True, stride: int = 1,
+                  occlusion_tol: float = 0.03) -> np.ndarray:
+    """Which vertices some camera saw: ``(V,)`` bool.
 
     A vertex is seen by a camera ``T_w_c`` (OpenCV axes, ``poses (N, 4, 4)``, every ``stride``-th used) when it
     projects inside the ``width x height`` image with intrinsics ``K (3, 3)``, lies in front of the camera
     (``0 < z``, and ``z <= max_depth`` metres when given) and, with ``occlusion``, when the first surface hit by
     the ray from the camera centre through it lies no more than ``occlusion_tol`` metres (along z) in front of it.
-    A face is kept when any of its vertices was seen by any camera; unreferenced vertices are removed.
     Non-finite poses are ignored.
     """
     mesh = load_mesh(mesh)
     poses = _poses(poses)[::max(1, int(stride))]
     poses = poses[np.all(np.isfinite(poses), axis=(1, 2))]  # lost-tracking rows see nothing
     K = _intrinsics(K, width, height)
-    if _is_empty(mesh):
-        return mesh.copy()
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     seen = np.zeros(len(verts), dtype=bool)
+    if _is_empty(mesh):
+        return seen
     scene = _raycasting_scene(mesh) if occlusion else None
     for T_w_c in poses:
         # 1. Frustum test for the vertices no camera has seen yet.
@@ -119,12 +154,26 @@ def cull_mesh(mesh: trimesh.Trimesh | str | Path, poses: np.ndarray, K: np.ndarr
             z_hit = _cast(scene, origins, dirs_w)
             cand = cand[z <= z_hit + occlusion_tol]
         seen[cand] = True
-    keep = seen[mesh.faces].any(axis=1)
-    out = mesh.copy()
-    out.update_faces(keep)
-    out.remove_unreferenced_vertices()
-    log.debug("cull_mesh: kept %d of %d faces", int(keep.sum()), len(keep))
-    return out
+    return seen
+
+
+def icp_align(est_mesh: trimesh.Trimesh | str | Path, gt_mesh: trimesh.Trimesh | str | Path,
+              threshold: float = 0.1) -> np.ndarray:
+    """Rigid 4x4 ``T`` refining the estimated mesh onto the ground truth (apply as ``est.apply_transform(T)``).
+
+    As NICE-SLAM / ESLAM ``get_align_transformation``: Open3D point-to-point ICP between the two meshes'
+    vertices, correspondence distance ``threshold`` metres (0.1), identity start. Empty meshes give identity.
+    """
+    import open3d as o3d
+
+    est, gt = load_mesh(est_mesh, "estimated mesh"), load_mesh(gt_mesh, "ground-truth mesh")
+    if len(est.vertices) == 0 or len(gt.vertices) == 0:
+        return np.eye(4)
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(est.vertices, dtype=np.float64)))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(gt.vertices, dtype=np.float64)))
+    reg = o3d.pipelines.registration.registration_icp(
+        src, dst, float(threshold), np.eye(4), o3d.pipelines.registration.TransformationEstimationPointToPoint())
+    return np.asarray(reg.transformation, dtype=np.float64)
 
 
 def render_depth(mesh: trimesh.Trimesh | str | Path, poses: np.ndarray, K: np.ndarray, width: int,
