@@ -1,11 +1,12 @@
 """``lrslam eval ate|mesh``: trajectory and reconstruction metrics from files.
 
 Bad inputs raise :class:`~lrslam.errors.InputError`; ``lrslam.cli.main`` prints them as one ``error: ...`` line.
+A mesh without faces (as given, or after culling) is such an error: its metrics would be infinite. ``--json``
+output is strict JSON (:func:`lrslam.jsonio.dumps`).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -13,6 +14,7 @@ import numpy as np
 import typer
 
 from lrslam.errors import InputError
+from lrslam.jsonio import dumps
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True,
                        help="Evaluate a run: ATE of a TUM trajectory, reconstruction metrics of a mesh.")
@@ -31,7 +33,7 @@ def ate(
 
     res = ate_from_files(est, gt, max_dt=max_dt, align=align)
     if as_json:
-        typer.echo(json.dumps(res.to_dict()))
+        typer.echo(dumps(res.to_dict()))
     else:
         typer.echo(f"ATE RMSE: {res.rmse_cm:.3f} cm  mean: {res.mean_cm:.3f}  median: {res.median_cm:.3f}  "
                    f"max: {res.max_cm:.3f}  ({res.n_matched} matched)")
@@ -48,13 +50,13 @@ def mesh(
     est_traj: Annotated[Optional[Path], typer.Option(
         "--est-traj", help="estimated trajectory (TUM): move the estimated mesh into the GT world with its ATE "
         "alignment to --traj")] = None,
-    threshold: Annotated[float, typer.Option("--threshold", help="completion-ratio threshold [m]")] = 0.05,
-    n_points: Annotated[int, typer.Option("--n-points", help="points sampled on each mesh")] = 200_000,
+    threshold: Annotated[float, typer.Option("--threshold", min=0.0, help="completion-ratio threshold [m]")] = 0.05,
+    n_points: Annotated[int, typer.Option("--n-points", min=1, help="points sampled on each mesh")] = 200_000,
     occlusion: Annotated[bool, typer.Option("--occlusion/--no-occlusion", help="cull occluded faces")] = True,
     max_depth: Annotated[Optional[float], typer.Option("--max-depth", help="culling range [m]")] = None,
-    stride: Annotated[int, typer.Option("--stride", help="use every n-th pose for culling")] = 1,
+    stride: Annotated[int, typer.Option("--stride", min=1, help="use every n-th pose for culling")] = 1,
     depth_views: Annotated[int, typer.Option(
-        "--depth-views", help="random views near --traj for depth L1 (0: skip)")] = 0,
+        "--depth-views", min=0, help="random views near --traj for depth L1 (0: skip)")] = 0,
     seed: Annotated[int, typer.Option("--seed", help="sampling seed")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="print a JSON object instead of text")] = False,
 ) -> None:
@@ -78,8 +80,10 @@ def mesh(
         raise InputError("--est-traj needs --traj (the ground-truth trajectory to align it to)")
     if depth_views > 0 and traj is None:
         raise InputError("--depth-views needs --traj, --intrinsics and --size")
-    est_mesh = load_mesh(est, "estimated mesh")
-    gt_mesh = load_mesh(gt, "ground-truth mesh")
+    if max_depth is not None and not max_depth > 0:
+        raise InputError(f"--max-depth must be > 0 metres, got {max_depth}")
+    est_mesh = _non_empty(load_mesh(est, "estimated mesh"), est, "estimated mesh")
+    gt_mesh = _non_empty(load_mesh(gt, "ground-truth mesh"), gt, "ground-truth mesh")
 
     # 2. Estimated mesh into the ground-truth world.
     if est_traj is not None:
@@ -105,16 +109,25 @@ def mesh(
             views = random_views(poses, depth_views, seed=seed)
             out["depth_l1_cm"] = depth_l1(est_mesh, gt_mesh, K, width, height, views)
         est_mesh = cull_mesh(est_mesh, poses, **cull)
+        _non_empty(gt_mesh, gt, "ground-truth mesh", f" inside the camera frusta of --traj {traj}")
+        _non_empty(est_mesh, est, "estimated mesh", f" inside the camera frusta of --traj {traj}")
     out = {**reconstruction_metrics(est_mesh, gt_mesh, n_points=n_points, threshold=threshold, seed=seed), **out}
 
     if as_json:
-        typer.echo(json.dumps(out))
+        typer.echo(dumps(out))
         return
     typer.echo(f"Accuracy: {out['accuracy_cm']:.3f} cm  Completion: {out['completion_cm']:.3f} cm  "
                f"Completion ratio: {out['completion_ratio']:.2f} % (< {100 * threshold:g} cm)  "
                f"({out['n_est']} / {out['n_gt']} faces)")
     if "depth_l1_cm" in out:
         typer.echo(f"Depth L1: {out['depth_l1_cm']:.3f} cm ({depth_views} views)")
+
+
+def _non_empty(mesh, path: Path, name: str, where: str = ""):
+    """The mesh, or InputError naming its file when it has no faces (its metrics would be infinite)."""
+    if len(mesh.faces) == 0:
+        raise InputError(f"{path}: the {name} has no faces{where}; its metrics would be infinite")
+    return mesh
 
 
 def _floats(text: str, n: int, option: str, form: str) -> list[float]:
