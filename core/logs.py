@@ -8,6 +8,7 @@ Lines go through ``tqdm.write`` so they print above a running progress bar inste
 from __future__ import annotations
 
 import logging
+import sys
 
 __all__ = ["setup_console_logging"]
 
@@ -21,7 +22,7 @@ class _TqdmHandler(logging.StreamHandler):
         try:
             from tqdm import tqdm
 
-            tqdm.write(self.format(record), file=self.stream)
+            tqdm.write(self.format(record), file=sys.stderr)  # the current stderr (tests swap it)
         except Exception:
             self.handleError(record)
 

@@ -20,13 +20,23 @@ class TrajectoryFormatError(ValueError):
     """A trajectory file that cannot be parsed; the message names the file and line."""
 
 
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory. Returns ``(timestamps (N,) float64 seconds, poses (N, 4, 4) T_w_c)``."""
+def read_tum(path: str | Path, invalid: str = "raise") -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory. Returns ``(timestamps (N,) float64 seconds, poses (N, 4, 4) T_w_c)``.
+
+    A line with a non-finite pose value or a zero quaternion raises TrajectoryFormatError, or with
+    ``invalid="nan"`` gives a NaN pose (ground truth missing at that time, as datasets mark lost tracking).
+    The timestamp must always be finite."""
+    if invalid not in ("raise", "nan"):
+        raise ValueError(f"invalid must be 'raise' or 'nan', got {invalid!r}")
     path = Path(path)
     if not path.is_file():
         raise TrajectoryFormatError(f"{path}: trajectory file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise TrajectoryFormatError(f"{path}: not a text (UTF-8) file") from None
     stamps, rows = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -38,13 +48,19 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             vals = [float(x) for x in parts]
         except ValueError:
             raise TrajectoryFormatError(f"{path}:{lineno}: non-numeric value in {line!r}") from None
-        if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[4:8]) < 1e-12:
+        bad = not np.all(np.isfinite(vals)) or not np.linalg.norm(vals[4:8]) >= 1e-12
+        if bad and (invalid == "raise" or not np.isfinite(vals[0])):
             raise TrajectoryFormatError(f"{path}:{lineno}: non-finite value or zero quaternion")
         stamps.append(vals[0])
-        rows.append(vals[1:])
+        rows.append([np.nan] * 7 if bad else vals[1:])
     if not rows:
         raise TrajectoryFormatError(f"{path}: no poses in file")
-    return np.asarray(stamps, dtype=np.float64), pose_from_tum(np.asarray(rows))
+    rows_a = np.asarray(rows, dtype=np.float64)
+    ok = np.all(np.isfinite(rows_a), axis=1)
+    poses = np.full((len(rows_a), 4, 4), np.nan)
+    if ok.any():
+        poses[ok] = pose_from_tum(rows_a[ok])
+    return np.asarray(stamps, dtype=np.float64), poses
 
 
 def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> Path:

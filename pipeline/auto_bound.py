@@ -1,25 +1,115 @@
-"""Scene bound for the field when neither the config nor the dataset gives one."""
+"""Scene bound for the field when neither the config nor the dataset gives one, and a check that it fits.
+
+* :func:`bound_from_prepass` (``bound: auto``): a fast frontend pre-pass over the whole sequence (RGB-D odometry
+  from :class:`lrslam.frontend.odometry.Odometry`, no field) collects camera centres and subsampled depth points
+  in the world frame; the bound is their robust extent (0.5 / 99.5 percentiles) grown by a margin.
+* :func:`bound_from_frame`: the old default, the first frame's points plus a margin.
+* :class:`BoundCoverage`: counts the frames whose view leaves the bound by more than a fraction of their valid
+  pixels (warned once per frame at most; the count goes into metrics).
+"""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
-from lrslam.camera import backproject_depth, transform_points
+from lrslam.camera import backproject_depth, strided_intrinsics, transform_points
+from lrslam.errors import InputError
 
-__all__ = ["bound_from_frame"]
+__all__ = ["bound_from_frame", "bound_from_prepass", "fraction_outside", "BoundCoverage", "PREPASS_MARGIN_M"]
+
+log = logging.getLogger(__name__)
+
+PREPASS_MARGIN_M = 0.3    # metres added around the pre-pass extent
+_MAX_WARNINGS = 5         # per run, further frames are counted and logged at INFO
+
+
+def _world_points(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, max_depth: float,
+                  pixel_stride: int = 1) -> np.ndarray:
+    """Valid depth points (M, 3) of one frame in the world frame, metres (every ``pixel_stride``-th pixel)."""
+    d = depth[::pixel_stride, ::pixel_stride]
+    pts = backproject_depth(d, strided_intrinsics(K, pixel_stride) if pixel_stride > 1 else K).reshape(-1, 3)
+    z = pts[:, 2]
+    return transform_points(T_w_c, pts[(z > 0) & (z < max_depth)])
+
+
+def _extent(points: np.ndarray, centres: np.ndarray, margin: float) -> np.ndarray:
+    lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
+    lo = np.minimum(lo, centres.min(axis=0)) - margin
+    hi = np.maximum(hi, centres.max(axis=0)) + margin
+    return np.stack([lo, hi], axis=1)
 
 
 def bound_from_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, margin: float = 1.0,
                      max_depth: float = 6.0) -> np.ndarray:
     """Axis-aligned bound (3, 2) metres (world frame) around a frame's valid points and camera centre,
     grown by ``margin`` metres on every side. Depths beyond ``max_depth`` are ignored."""
-    pts = backproject_depth(depth, K).reshape(-1, 3)
-    z = pts[:, 2]
-    pts = pts[(z > 0) & (z < max_depth)]
+    pts = _world_points(depth, K, T_w_c, max_depth)
     if len(pts) == 0:
-        raise ValueError("cannot derive a scene bound: the first frame has no valid depth")
-    pts = np.vstack([transform_points(T_w_c, pts), T_w_c[:3, 3]])
-    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
-    lo = np.minimum(lo, T_w_c[:3, 3]) - margin
-    hi = np.maximum(hi, T_w_c[:3, 3]) + margin
-    return np.stack([lo, hi], axis=1)
+        raise InputError("cannot derive a scene bound: the first frame has no valid depth")
+    return _extent(np.vstack([pts, T_w_c[:3, 3]]), T_w_c[None, :3, 3], margin)
+
+
+def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = PREPASS_MARGIN_M,
+                       max_depth: float = 6.0, pixel_stride: int = 8) -> np.ndarray:
+    """Bound (3, 2) metres (world frame, first camera at ``T_w_c0``) covering every frame of ``seq`` seen from
+    its odometry pose: camera centres and depth points (every ``pixel_stride``-th pixel, depth < ``max_depth``
+    metres), 0.5-99.5 percentile extent plus ``margin`` metres."""
+    from lrslam.frontend.odometry import Odometry
+
+    first = seq[0]
+    odo = Odometry(odometry_cfg, first.K, first.height, first.width)
+    odo.reset(np.asarray(T_w_c0, dtype=np.float64), first)
+    centres, points = [T_w_c0[:3, 3]], [_world_points(first.depth, first.K, T_w_c0, max_depth, pixel_stride)]
+    n_lost = 0
+    for i in range(1, len(seq)):
+        frame = seq[i]
+        res = odo.track(frame)
+        n_lost += not res.ok
+        T = np.asarray(res.T_w_c, dtype=np.float64)
+        centres.append(T[:3, 3])
+        points.append(_world_points(frame.depth, frame.K, T, max_depth, pixel_stride))
+    pts = np.vstack(points)
+    if len(pts) == 0:
+        raise InputError(f"{seq.root}: cannot estimate a scene bound: no frame has valid depth")
+    b = _extent(np.vstack([pts, centres]), np.asarray(centres), margin)
+    log.info("bound: auto from a %d-frame odometry pre-pass (%d frames lost): %s", len(seq), n_lost,
+             np.round(b, 3).tolist())
+    return b
+
+
+def fraction_outside(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, bound: np.ndarray,
+                     max_depth: float = 6.0, pixel_stride: int = 4) -> float:
+    """Fraction in [0, 1] of a frame's valid depth points (world frame via ``T_w_c``) outside ``bound`` (3, 2)."""
+    pts = _world_points(depth, K, T_w_c, max_depth, pixel_stride)
+    if len(pts) == 0:
+        return 0.0
+    b = np.asarray(bound, dtype=np.float64)
+    inside = np.all((pts >= b[:, 0]) & (pts <= b[:, 1]), axis=1)
+    return float(1.0 - inside.mean())
+
+
+class BoundCoverage:
+    """Counts frames whose view leaves ``bound`` (3, 2) metres by more than ``max_fraction`` of valid pixels."""
+
+    def __init__(self, bound: np.ndarray, max_fraction: float = 0.05) -> None:
+        self.bound = np.asarray(bound, dtype=np.float64)
+        self.max_fraction = max_fraction
+        self.frames: list[int] = []
+
+    def check(self, frame, T_w_c: np.ndarray) -> float:
+        """Check one frame (depth, K) at pose ``T_w_c``; returns its fraction of points outside the bound."""
+        f = fraction_outside(frame.depth, frame.K, T_w_c, self.bound)
+        if f > self.max_fraction:
+            self.frames.append(frame.index)
+            (log.warning if len(self.frames) <= _MAX_WARNINGS else log.info)(
+                "frame %d: %.0f%% of its depth points lie outside the scene bound %s (set a larger `bound`, or "
+                "bound: auto)%s", frame.index, 100 * f, np.round(self.bound, 2).tolist(),
+                "; further frames are logged in run.log" if len(self.frames) == _MAX_WARNINGS else "")
+        return f
+
+    def metrics(self) -> dict:
+        """``frames_outside_bound`` (count) and the first such frame indices, for metrics.json."""
+        return {"frames_outside_bound": len(self.frames), "frames_outside_bound_first": self.frames[:10],
+                "bound_check_fraction": self.max_fraction}

@@ -8,14 +8,15 @@ can later map :func:`run_job` over the jobs unchanged.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["run_job", "run_batch", "comparison_table"]
+from lrslam.jsonio import dumps
+
+__all__ = ["run_job", "run_batch", "comparison_table", "failed_jobs"]
 
 log = logging.getLogger(__name__)
 
@@ -25,16 +26,28 @@ COLUMNS = [("ate_rmse_cm", "ATE RMSE cm", "{:.2f}"), ("ate_mean_cm", "ATE mean c
 
 
 def run_job(sequence: str, config: dict[str, Any], out_dir: str, progress: bool = False) -> dict[str, Any]:
-    """Run one (sequence, config) job; returns its metrics (with ``error`` set if it failed)."""
+    """Run one (sequence, config) job; returns its metrics (with ``error`` set if it failed).
+
+    ``config`` is a run config as a dict; ``"bound": "auto"`` asks for the pre-pass bound."""
     from lrslam.pipeline.config import RunConfig
     from lrslam.pipeline.run import run_sequence
 
     try:
+        config = dict(config)
+        auto = config.get("bound") == "auto"
+        if auto:
+            config.pop("bound")
         cfg = RunConfig.model_validate(config)
-        return run_sequence(sequence, cfg, out_dir, progress=progress).metrics
+        return run_sequence(sequence, cfg, out_dir, progress=progress, auto_bound=auto).metrics
     except Exception as e:  # one failing job must not lose the others
         log.error("job %s (%s) failed: %s", sequence, config.get("mode"), e)
         return {"mode": config.get("mode"), "error": f"{type(e).__name__}: {e}"}
+
+
+def failed_jobs(results: dict[str, dict[str, dict[str, Any]]]) -> list[tuple[str, str]]:
+    """``[("<sequence> (<mode>)", error), ...]`` for every job of a batch that failed."""
+    return [(f"{seq} ({mode})", m["error"]) for seq, by_mode in results.items() for mode, m in by_mode.items()
+            if "error" in m]
 
 
 def comparison_table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
@@ -66,7 +79,7 @@ def run_batch(sequences: list[str | Path], configs: dict[str, dict[str, Any]], o
             if (job_dir / "trajectory.txt").is_file():
                 trajs[label] = read_tum(job_dir / "trajectory.txt")
         _plot_sequence(out / name / "comparison.png", seq, trajs, configs)
-    (out / "comparison.json").write_text(json.dumps(results, indent=2, default=float))
+    (out / "comparison.json").write_text(dumps(results, indent=2, default=float))
     (out / "comparison.md").write_text(comparison_table(results) + "\n")
     return results
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import json
+import math
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from lrslam.errors import InputError
+from lrslam.jsonio import dumps
 from lrslam.logs import setup_console_logging
 
 __all__ = ["run", "params", "DEMO_SYNTH"]
@@ -17,23 +18,39 @@ __all__ = ["run", "params", "DEMO_SYNTH"]
 DEMO_SYNTH = dict(scene="room", trajectory="loop", n_frames=80, seed=0, width=320, height=240)
 
 
+def _num(v, fmt: str) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else format(v, fmt)
+
+
+def _ate_line(m: dict) -> str:
+    if m.get("ate_rmse_cm") is not None:
+        seed = f"   (seed only: {_num(m['seed_ate_rmse_cm'], '.3f')} cm)" if "seed_ate_rmse_cm" in m else ""
+        return f"ATE RMSE: {_num(m['ate_rmse_cm'], '.3f')} cm   mean: {_num(m.get('ate_mean_cm'), '.3f')} cm{seed}"
+    if m.get("evaluation_error"):
+        return f"ATE: evaluation failed ({m['evaluation_error']})"
+    if m.get("has_ground_truth", False):
+        return "ATE: not evaluated (output.evaluate is off)"
+    return "ATE: no ground truth in this sequence"
+
+
 def _summary_lines(metrics: dict, out: Path) -> list[str]:
     lines = [f"mode: {metrics['mode']}   frames: {metrics['n_frames']}   keyframes: {metrics['n_keyframes']}"
-             f"   loop closures: {metrics['n_loop_closures']}"]
-    if "ate_rmse_cm" in metrics:
-        lines.append(f"ATE RMSE: {metrics['ate_rmse_cm']:.3f} cm   mean: {metrics['ate_mean_cm']:.3f} cm"
-                     + (f"   (seed only: {metrics['seed_ate_rmse_cm']:.3f} cm)" if "seed_ate_rmse_cm" in metrics else ""))
-    else:
-        lines.append("ATE: no ground truth in this sequence")
+             f"   loop closures: {metrics['n_loop_closures']}", _ate_line(metrics)]
     if "mesh_accuracy_cm" in metrics:
-        lines.append(f"mesh: accuracy {metrics['mesh_accuracy_cm']:.2f} cm   completion {metrics['mesh_completion_cm']:.2f} cm"
-                     f"   completion ratio {metrics['mesh_completion_ratio']:.1f} %")
+        lines.append(f"mesh: accuracy {_num(metrics['mesh_accuracy_cm'], '.2f')} cm   completion "
+                     f"{_num(metrics['mesh_completion_cm'], '.2f')} cm   completion ratio "
+                     f"{_num(metrics['mesh_completion_ratio'], '.1f')} %")
     lines.append(f"frame processing time: {metrics['fpt_s']:.3f} s/frame   (wall {metrics['wall_s']:.1f} s)")
     stages = ", ".join(f"{k} {v['per_frame_s']:.3f}" for k, v in metrics.get("timings", {}).items())
     lines.append(f"per-stage s/frame: {stages}")
     if "parameters" in metrics:
         p = metrics["parameters"]
         lines.append("field parameters: " + ", ".join(f"{k} {v:,}" for k, v in p.items()))
+    if metrics.get("frames_outside_bound"):
+        lines.append(f"WARNING: {metrics['frames_outside_bound']} frames saw more than "
+                     f"{100 * metrics['bound_check_fraction']:.0f}% of their depth outside the scene bound")
+    if metrics.get("status") == "degraded":
+        lines.append("WARNING: run degraded (exit code 3): " + "; ".join(metrics.get("degraded_reasons", [])))
     for name in ("trajectory.txt", "keyframes.txt", "mesh.ply", "trajectory.png", "metrics.json", "config.yaml"):
         if (out / name).exists():
             lines.append(f"  wrote {out / name}")
@@ -50,13 +67,22 @@ def run(
     representation: Optional[str] = typer.Option(None, "--repr", help="Representation preset (lrslam, eslam, cp-cp, "
                                                                        "sa-sa, sa-cp, cp-sa)."),
     overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override, e.g. --set schedule.map_every=2"),
-    max_frames: Optional[int] = typer.Option(None, help="Process at most this many frames."),
+    max_frames: Optional[int] = typer.Option(None, min=1, help="Process at most this many frames."),
     demo: bool = typer.Option(False, "--demo", help="Generate the built-in synthetic sequence and run on it."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write into a non-empty folder that is not an lrslam "
+                                                              "run folder (other files in it are kept)."),
+    partial_every: int = typer.Option(10, "--partial-every", min=1, help="Save trajectory_partial.txt every N "
+                                                                         "frames during the run."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
 ) -> None:
-    """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT."""
-    from lrslam.pipeline.config import build_config
+    """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT.
+
+    Exit code 0: ok; 2: bad input; 3: the run finished but is degraded (see metrics.json "degraded_reasons").
+    ``--set bound=auto`` estimates the scene bound with a fast odometry pre-pass over the sequence.
+    """
+    from lrslam.pipeline.config_source import load_run_config
     from lrslam.pipeline.run import run_sequence
+    from lrslam.pipeline.run_folder import check_run_folder
 
     setup_console_logging()
     if demo:
@@ -64,7 +90,8 @@ def run(
     ov = list(overrides or [])
     if max_frames is not None:
         ov.append(f"dataset.options.max_frames={max_frames}")
-    cfg = build_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
+    loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
+    check_run_folder(out, overwrite)
     if demo:
         from lrslam.frontend.synthetic.writer import generate
 
@@ -74,9 +101,12 @@ def run(
             generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
     if path is None:
         raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
-    res = run_sequence(path, cfg, out, progress=not quiet)
+    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, partial_every=partial_every,
+                       auto_bound=loaded.auto_bound, presets=loaded.presets)
     for line in _summary_lines(res.metrics, Path(out)):
         typer.echo(line)
+    if res.metrics.get("status") == "degraded":
+        raise typer.Exit(3)
 
 
 def _demo_noise():
@@ -95,13 +125,17 @@ def params(
     import numpy as np
 
     from lrslam.field.model import SceneModel
-    from lrslam.pipeline.config import build_config, list_presets
+    from lrslam.pipeline.config import list_presets
+    from lrslam.pipeline.config_source import load_run_config
 
-    cfg = build_config(config)
+    cfg = load_run_config(config).cfg
     if bound:
-        vals = [float(x) for x in bound.split(",")]
-        if len(vals) != 6:
-            raise InputError("--bound needs 6 comma-separated numbers")
+        try:
+            vals = [float(x) for x in bound.split(",")]
+        except ValueError:
+            vals = []
+        if len(vals) != 6 or not all(map(math.isfinite, vals)):
+            raise InputError(f"--bound needs 6 comma-separated numbers xmin,xmax,ymin,ymax,zmin,zmax, got {bound!r}")
         b = np.asarray(vals).reshape(3, 2)
     elif cfg.bound is not None:
         b = np.asarray(cfg.bound)
@@ -110,11 +144,11 @@ def params(
     names = [representation] if representation else list_presets("representation")
     rows = {}
     for name in names:
-        rcfg = build_config(config, name)
+        rcfg = load_run_config(config, name).cfg
         counts = SceneModel(b, rcfg.field.model).parameter_count()
         rows[name] = {**counts, "all": counts["total"] + counts["decoders"]}
     if as_json:
-        typer.echo(json.dumps({"bound": b.tolist(), "parameters": rows}, indent=2))
+        typer.echo(dumps({"bound": b.tolist(), "parameters": rows}, indent=2))
         return
     typer.echo(f"bound {b.tolist()} (metres)")
     typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'total':>12}{'decoders':>10}{'all':>12}")
@@ -131,20 +165,36 @@ def batch(
     config: Optional[str] = typer.Option(None, "--config", "-c", help="Dataset preset or YAML (applies to all)."),
     representation: Optional[str] = typer.Option(None, "--repr"),
     overrides: Optional[list[str]] = typer.Option(None, "--set"),
-    max_frames: Optional[int] = typer.Option(None),
+    max_frames: Optional[int] = typer.Option(None, min=1),
     quiet: bool = typer.Option(False, "--quiet", "-q"),
 ) -> None:
-    """Run every sequence in every mode and print the side-by-side comparison table (also OUT/comparison.md)."""
-    from lrslam.pipeline.batch import comparison_table, run_batch
-    from lrslam.pipeline.config import build_config
+    """Run every sequence in every mode and print the side-by-side comparison table (also OUT/comparison.md).
+
+    Exit code 1 when any job failed (each failed job is named on stderr), 3 when any run is degraded.
+    """
+    from lrslam.pipeline.batch import comparison_table, failed_jobs, run_batch
+    from lrslam.pipeline.config_source import load_run_config
+    from lrslam.pipeline.run_folder import check_output_folder
 
     setup_console_logging()
     ov = list(overrides or []) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
+    check_output_folder(out)
     configs = {}
     for m in [x.strip() for x in modes.split(",") if x.strip()]:
         if m not in ("field", "frontend", "fused"):
-            raise InputError(f"unknown mode {m!r}: use field, frontend or fused")
-        configs[m] = build_config(config, representation, overrides=ov, mode=m).model_dump(mode="json")
+            raise InputError(f"--modes: unknown mode {m!r}: use field, frontend or fused")
+        loaded = load_run_config(config, representation, overrides=ov, mode=m)
+        configs[m] = loaded.cfg.model_dump(mode="json")
+        if loaded.auto_bound:
+            configs[m]["bound"] = "auto"
     results = run_batch([str(p) for p in paths], configs, out, progress=not quiet)
     typer.echo(comparison_table(results))
     typer.echo(f"wrote {out / 'comparison.md'} and {out / 'comparison.json'}")
+    failed = failed_jobs(results)
+    for job, err in failed:
+        typer.echo(f"error: job {job} failed: {err}", err=True)
+    if failed:
+        raise typer.Exit(1)
+    if any(m.get("status") == "degraded" for by_mode in results.values() for m in by_mode.values()):
+        typer.echo("warning: some runs are degraded (see their metrics.json)", err=True)
+        raise typer.Exit(3)

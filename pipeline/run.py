@@ -1,13 +1,15 @@
 """Run one sequence end to end and write its run folder.
 
-Run folder (every run): ``config.yaml`` (resolved config), ``trajectory.txt`` (TUM, every frame, input
-timestamps), ``keyframes.txt`` (TUM), ``trajectory_seed.txt`` (the per-frame seeds: odometry or constant
-velocity), ``mesh.ply``, ``metrics.json``, ``trajectory.png`` and ``run.log``.
+Run folder (every run): ``config.yaml`` (resolved config, the reader actually used, ``provenance``; feed it
+back with ``--config``), ``trajectory.txt`` (TUM, every frame, input timestamps), ``keyframes.txt`` (TUM),
+``trajectory_seed.txt`` (the per-frame seeds: odometry or constant velocity), ``mesh.ply``, ``metrics.json``
+(strict JSON, with ``status: ok | degraded``), ``trajectory.png`` and ``run.log``. While the run is going,
+``trajectory_partial.txt`` holds the poses tracked so far (rewritten atomically every ``partial_every`` frames
+and on a crash or interrupt; removed on success). See :mod:`lrslam.pipeline.run_folder`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import platform
 import time
@@ -18,11 +20,14 @@ import numpy as np
 
 from lrslam.config import save_yaml
 from lrslam.errors import InputError
-from lrslam.pipeline.auto_bound import bound_from_frame
+from lrslam.jsonio import dumps, json_safe
+from lrslam.pipeline.auto_bound import BoundCoverage, bound_from_frame, bound_from_prepass
 from lrslam.pipeline.config import RunConfig
+from lrslam.pipeline.provenance import provenance
+from lrslam.pipeline.run_folder import PartialTrajectory, prepare_run_folder
 from lrslam.pipeline.runner import SlamRunner
+from lrslam.pipeline.sanity import run_status
 from lrslam.pipeline.timing import StageTimer
-from lrslam.trajectory_io import write_tum
 
 __all__ = ["run_sequence", "RunResult"]
 
@@ -57,8 +62,10 @@ def _open(path: str | Path, cfg: RunConfig):
     return seq
 
 
-def _choose_bound(cfg: RunConfig, seq, first, T0) -> tuple[np.ndarray, str]:
-    if cfg.bound is not None:
+def _choose_bound(cfg: RunConfig, seq, first, T0, auto_bound: bool = False) -> tuple[np.ndarray, str]:
+    if auto_bound:
+        b, src = bound_from_prepass(seq, cfg.odometry_config(), T0), "auto (pre-pass)"
+    elif cfg.bound is not None:
         b = np.asarray(cfg.bound, dtype=np.float64)
         src = "config"
     elif getattr(seq, "bound", None) is not None:
@@ -70,38 +77,90 @@ def _choose_bound(cfg: RunConfig, seq, first, T0) -> tuple[np.ndarray, str]:
     return b, src
 
 
+def _check_first_frame(seq, first) -> None:
+    if first.valid_depth_fraction() == 0:
+        raise InputError(f"{seq.depth_path(0)}: the first frame has no valid depth (all zero); cannot initialise "
+                         "the map")
+
+
+def _config_record(cfg: RunConfig, seq, auto_bound: bool, prov: dict) -> dict:
+    """config.yaml: the resolved settings (the reader actually used, ``bound: auto`` kept) + ``provenance``."""
+    rec = cfg.resolved()
+    rec["dataset"]["reader"] = seq.name
+    if auto_bound:
+        rec["bound"] = "auto"
+    return {**rec, "provenance": prov}
+
+
 def _save_partial(out_dir: Path, seq, runner: SlamRunner) -> None:
     """Write the poses tracked so far to ``trajectory_partial.txt`` (TUM format) after a failed run."""
     try:
         poses = runner.poses()
-        write_tum(out_dir / "trajectory_partial.txt", np.asarray(seq.timestamps, dtype=np.float64)[: len(poses)],
-                  poses)
+        PartialTrajectory(out_dir, seq.timestamps).save(poses)
         log.error("run stopped after %d frames; poses so far in %s", len(poses), out_dir / "trajectory_partial.txt")
     except Exception as e:  # the original error matters more
         log.error("could not save the partial trajectory: %s", e)
 
 
-def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True) -> RunResult:
+def _after_frame(i: int, rec, frame, runner: SlamRunner, coverage: BoundCoverage | None,
+                 partial: PartialTrajectory) -> None:
+    """Per-frame bookkeeping: one run.log line, the bound coverage check, the periodic partial trajectory."""
+    log.info("frame %d done: keyframe %s, refine %s%s", i, rec.keyframe, rec.refine_ok,
+             "; " + "; ".join(rec.notes) if rec.notes else "")
+    if coverage is not None and frame.valid_depth_fraction() > 0:
+        coverage.check(frame, runner.traj.pose(len(runner.traj) - 1))
+    if partial.due(i + 1):
+        partial.save(runner.poses())
+
+
+def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, mode: str,
+            coverage: BoundCoverage | None) -> dict:
+    """Add ground-truth presence, bound coverage and the sanity status to the metrics; write ``metrics.json``
+    (strict JSON: non-finite values become null + ``<key>_reason``). Returns the written metrics."""
+    gt = seq.gt_poses()
+    metrics["has_ground_truth"] = bool(gt is not None and np.isfinite(gt).all(axis=(1, 2)).any())
+    if coverage is not None:
+        metrics.update(coverage.metrics())
+    metrics["status"], reasons = run_status(metrics, poses, bound, mode)
+    if reasons:
+        metrics["degraded_reasons"] = reasons
+        log.warning("run degraded: %s", "; ".join(reasons))
+    safe = json_safe(metrics)
+    (out_dir / "metrics.json").write_text(dumps(safe, indent=2))
+    return safe
+
+
+def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True, *,
+                 overwrite: bool = False, partial_every: int = 10, auto_bound: bool = False,
+                 presets: dict[str, str | None] | None = None) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
-    Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict.
+    ``out_dir`` must be new, empty or an earlier run folder (any non-empty folder with ``overwrite``); its old
+    outputs are deleted first. ``partial_every``: frames between saves of ``trajectory_partial.txt``.
+    ``auto_bound``: estimate the scene bound with an odometry pre-pass (``bound: auto``). ``presets``: the preset
+    names the config came from, for the provenance record.
+
+    Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
+    ``metrics.json``, with ``status`` "ok" or "degraded").
     """
     from tqdm import tqdm
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if partial_every < 1:
+        raise InputError(f"--partial-every must be >= 1 frame, got {partial_every}")
+    out_dir = prepare_run_folder(Path(out_dir), overwrite)
     handler = _attach_file_log(out_dir)
     try:
         seq = _open(path, cfg)
-        save_yaml(out_dir / "config.yaml", {"sequence": str(Path(path).resolve()), **cfg.resolved()})
+        save_yaml(out_dir / "config.yaml", _config_record(cfg, seq, auto_bound, provenance(path, seq.name, presets)))
         first = seq[0]
+        _check_first_frame(seq, first)
         T0 = np.eye(4)
         if cfg.initial_pose == "gt":
             if first.T_w_c_gt is not None:
                 T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
             else:
                 log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
-        bound, bound_src = _choose_bound(cfg, seq, first, T0)
+        bound, bound_src = _choose_bound(cfg, seq, first, T0, auto_bound)
         log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s", path, len(seq), seq.name,
                  np.round(bound, 3).tolist(), bound_src, cfg.mode)
 
@@ -110,6 +169,8 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
         runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
         runner.start(first, T0)
         frame_seconds = [time.perf_counter() - t_start]
+        coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
+        partial = PartialTrajectory(out_dir, seq.timestamps, partial_every)
         bar = tqdm(range(1, len(seq)), desc=f"lrslam {cfg.mode}", unit="frame", disable=not progress,
                    initial=1, total=len(seq))
         try:
@@ -117,8 +178,9 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
                 t_frame = time.perf_counter()
                 with timer("io"):
                     frame = seq[i]
-                runner.step(frame)
+                rec = runner.step(frame)
                 frame_seconds.append(time.perf_counter() - t_frame)
+                _after_frame(i, rec, frame, runner, coverage, partial)
                 if progress and i % 5 == 0:
                     bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
         except BaseException:
@@ -137,7 +199,8 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
         metrics = write_outputs(out_dir, cfg, seq, result, timestamps, timer, wall, bound, bound_src, progress,
                                 np.asarray(frame_seconds))
         metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
-        (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        metrics = _finish(out_dir, metrics, seq, poses, bound, cfg.mode, coverage)
+        partial.remove()
         return RunResult(out_dir, metrics, timestamps, poses)
     finally:
         logging.getLogger("lrslam").removeHandler(handler)

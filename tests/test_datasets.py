@@ -226,14 +226,59 @@ def test_freiburg_camera_choice(tmp_path, caplog):
     (fx, fy, cx, cy), _ = FREIBURG_CAMERAS[2]
     np.testing.assert_array_equal(open_sequence(root).K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
     root = write_tum_folder(tmp_path / "office", n=1, gt=False, size=(640, 480))
-    with caplog.at_level(logging.WARNING):
-        assert open_sequence(root).K[0, 0] == FREIBURG_CAMERAS[1][0][0]
-    assert "using the Freiburg 1 calibration" in caplog.text
+    with pytest.raises(DatasetError, match="unknown camera.*intrinsics.yaml"):  # never a silent Freiburg 1
+        open_sequence(root)
     (root / "rgb.txt").write_text("# file: 'rgbd_dataset_freiburg3_long_office.bag'\n"
                                   + (root / "rgb.txt").read_text())
     assert open_sequence(root).K[0, 0] == FREIBURG_CAMERAS[3][0][0]  # bag name in the list header
     with pytest.raises(DatasetError, match="image is 32x24 but the dataset states 640x480"):
         open_sequence(write_tum_folder(tmp_path / "fr1_small", n=1, gt=False))
+
+
+def test_tum_camera_of_another_camera_from_its_file_or_options(tmp_path, caplog):
+    root = write_tum_folder(tmp_path / "my_kinect", n=1, gt=False)
+    (root / "intrinsics.yaml").write_text("fx: 30.0\nfy: 31.0\ncx: 15.5\ncy: 11.5\ndepth_scale: 2500\n")
+    with caplog.at_level(logging.WARNING):
+        seq = open_sequence(root)
+    np.testing.assert_array_equal(seq.K, [[30, 0, 15.5], [0, 31, 11.5], [0, 0, 1]])
+    assert seq.depth_scale == 2500 and "Freiburg" not in caplog.text
+    (root / "intrinsics.yaml").write_text("fx: 30.0\nfy: 31.0\ncx: 15.5\nc_y: 11.5\n")
+    with pytest.raises(DatasetError, match="intrinsics.yaml: cy"):
+        open_sequence(root)
+    (root / "intrinsics.yaml").unlink()
+    opts = ReaderOptions(fx=40.0, fy=40.0, cx=16.0, cy=12.0, distortion=(0.1, 0, 0, 0, 0))
+    seq = open_sequence(root, options=opts)
+    assert seq.K[0, 0] == 40.0 and seq._undistort is not None
+
+
+def test_tum_nan_ground_truth_line_is_missing_ground_truth(tmp_path):
+    root = write_tum_folder(tmp_path / "fr1_nan", n=3, size=(640, 480))
+    lines = (root / "groundtruth.txt").read_text().splitlines()
+    t_frame1 = T0 + DT
+    # blank every motion-capture sample within 0.02 s of frame 1: that frame has no ground truth
+    out = []
+    for ln in lines:
+        if not ln.startswith("#") and abs(float(ln.split()[0]) - t_frame1) < 0.02:
+            ln = ln.split()[0] + " nan nan nan nan nan nan nan"
+        out.append(ln)
+    (root / "groundtruth.txt").write_text("\n".join(out) + "\n")
+    gt = open_sequence(root).gt_poses()
+    assert np.isfinite(gt[0]).all() and np.isnan(gt[1]).all() and np.isfinite(gt[2]).all()
+
+
+def test_7scenes_nan_pose_is_missing_ground_truth(tmp_path, caplog):
+    write_7scenes_folder(tmp_path / "s", n=3)
+    (tmp_path / "s" / "frame-000001.pose.txt").write_text("nan " * 16)
+    with caplog.at_level(logging.WARNING):
+        gt = open_sequence(tmp_path / "s").gt_poses()
+    assert np.isnan(gt[1]).all() and np.isfinite(gt[0]).all() and "1 of 3 frames" in caplog.text
+
+
+def test_binary_list_file_is_a_dataset_error(tmp_path):
+    root = write_tum_folder(tmp_path / "fr1_bin", n=1, gt=False, size=(640, 480))
+    (root / "depth.txt").write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(DatasetError, match="depth.txt: not a text"):
+        open_sequence(root)
 
 
 def test_tum_undistorts_colour_only(tmp_path):

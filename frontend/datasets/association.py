@@ -54,7 +54,8 @@ def interpolate_poses(t_query: np.ndarray, t_samples: np.ndarray, poses: np.ndar
 
     For each query time: when the samples just before and just after both lie within ``max_difference``,
     the pose is interpolated between them (translation linearly, rotation by slerp); otherwise the nearest
-    sample within ``max_difference`` is used; otherwise the row is NaN (no ground truth for that time).
+    sample within ``max_difference`` is used; otherwise the row is NaN (no ground truth for that time). A NaN
+    sample (lost tracking) gives NaN to every query it would be used for.
 
     Args:
         t_query: (N,) seconds. t_samples: (M,) seconds (any order). poses: (M, 4, 4) rigid transforms.
@@ -75,7 +76,11 @@ def interpolate_poses(t_query: np.ndarray, t_samples: np.ndarray, poses: np.ndar
     dp = np.where(has_p, tq - ts[p_c], np.inf)
     exact = has_n & (dn == 0)
     interp = has_n & has_p & (dn < max_difference) & (dp < max_difference) & ~exact
-    nearest = ~interp & (np.minimum(dn, dp) < max_difference)
+    # a NaN sample (lost tracking) leaves every query that would use it without a pose
+    valid = np.all(np.isfinite(P), axis=(1, 2))
+    broken = interp & ~(valid[p_c] & valid[n_c])
+    interp &= ~broken
+    nearest = ~interp & ~broken & (np.minimum(dn, dp) < max_difference)
     near_idx = np.where(dn <= dp, n_c, p_c)
     out[nearest] = P[near_idx[nearest]]
     if np.any(interp):

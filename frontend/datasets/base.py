@@ -125,7 +125,8 @@ class Sequence(abc.ABC):
         self._geometry = ImageGeometry(w, h, self.options.resize, self.options.crop_border)
         self.K = self._geometry.adjust_K(K_native)
         self.width, self.height = self._geometry.out_size
-        dist = src.distortion if self.options.intrinsics_override() is None else None  # override = ideal pinhole
+        # an intrinsics override is an ideal pinhole camera unless it gives its own distortion
+        dist = src.distortion if self.options.intrinsics_override() is None else self.options.distortion
         self._undistort = (Undistorter(K_native, dist) if self.options.undistort and dist is not None
                            and np.any(np.asarray(dist) != 0) else None)
 
@@ -173,6 +174,10 @@ class Sequence(abc.ABC):
             T = self._poses[i].copy()
         return Frame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
                      T_w_c_gt=T)
+
+    def depth_path(self, i: int) -> Path:
+        """The depth image file of frame ``i`` of the selection (for messages)."""
+        return self._depth_paths[i]
 
     def gt_poses(self) -> np.ndarray | None:
         """Ground-truth ``T_w_c`` of the selected frames, (N, 4, 4) float64, NaN-filled where a frame has none;

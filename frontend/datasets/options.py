@@ -29,8 +29,10 @@ class ReaderOptions(StrictModel):
         undistort: undistort the colour image with the camera's distortion model (TUM Freiburg 1/2 only; the
             depth image is left as is, like ESLAM).
         fx, fy, cx, cy: pinhole intrinsics (pixels, native image size) overriding the reader's own, for readers
-            whose intrinsics come from a config (Replica) or to correct a dataset. All four or none. The override
-            describes an ideal pinhole camera: the reader's distortion model (TUM) is then not applied.
+            whose intrinsics come from a config (Replica), for a TUM-layout folder of a non-Freiburg camera, or to
+            correct a dataset. All four or none. The override describes an ideal pinhole camera (the reader's own
+            distortion model is not applied) unless ``distortion`` is given.
+        distortion: OpenCV ``k1 k2 p1 p2 k3`` of the colour camera that goes with an intrinsics override.
         depth_scale: raw depth units per metre (metres = raw / depth_scale), overriding the reader's own.
     """
 
@@ -43,6 +45,7 @@ class ReaderOptions(StrictModel):
     fy: PositiveFloat | None = None
     cx: float | None = None
     cy: float | None = None
+    distortion: tuple[float, float, float, float, float] | None = None
     depth_scale: PositiveFloat | None = None
 
     @model_validator(mode="after")
@@ -50,6 +53,10 @@ class ReaderOptions(StrictModel):
         given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
         if any(given) and not all(given):
             raise ValueError("intrinsics override needs all of fx, fy, cx, cy (or none of them)")
+        if self.distortion is not None and not any(given):
+            raise ValueError("distortion needs the intrinsics override fx, fy, cx, cy")
+        if self.distortion is not None and not all(math.isfinite(v) for v in self.distortion):
+            raise ValueError(f"distortion must be finite, got {self.distortion}")
         for name in ("fx", "fy", "cx", "cy", "depth_scale"):
             v = getattr(self, name)
             if v is not None and not math.isfinite(v):

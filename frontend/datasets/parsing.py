@@ -22,6 +22,15 @@ log = logging.getLogger(__name__)
 NAN_POSE = np.full((4, 4), np.nan)
 
 
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not a text (UTF-8) file") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read: {e.strerror or e}") from None
+
+
 def read_numbers(path: Path) -> np.ndarray:
     """All whitespace/comma separated numbers of a text file (``#`` comment lines skipped) -> (N,) float64.
     ``inf``/``nan`` tokens are kept as such (ScanNet marks lost poses with ``-inf``)."""
@@ -29,7 +38,7 @@ def read_numbers(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
     values: list[float] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(_read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -110,7 +119,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         raise DatasetError(f"{path}: file not found")
     stamps: list[float] = []
     names: list[str] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(_read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

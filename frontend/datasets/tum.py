@@ -8,13 +8,18 @@ Layout: ``rgb.txt`` and ``depth.txt`` (``timestamp filename`` per line, ``#`` co
   than 0.02 s apart); a frame's timestamp is its colour image's. Unpaired images are dropped (logged).
 * Ground truth: **interpolated** at each frame's timestamp between the two bracketing motion-capture samples
   (linear translation, slerp rotation) when both lie within 0.02 s, else the nearest sample within 0.02 s,
-  else none for that frame (NaN row in ``gt_poses()``, ``Frame.T_w_c_gt`` None). Without ``groundtruth.txt``
+  else none for that frame (NaN row in ``gt_poses()``, ``Frame.T_w_c_gt`` None). A ``groundtruth.txt`` line with
+  NaN/inf values or a zero quaternion is a missing sample: frames that would use it have no ground truth
+  (logged), the same as a non-finite 7-Scenes pose file. Without ``groundtruth.txt``
   the sequence still runs (``gt_poses()`` is None).
-* Camera: the published Freiburg 1/2/3 calibrations, chosen from ``freiburg1``/``fr1`` ... in the folder
-  name, else in ``rgb.txt``'s comment header (the source bag name); Freiburg 1 with a logged warning when
-  neither names one. With ``ReaderOptions.undistort`` the colour image is undistorted (same pinhole K, like
-  ESLAM); depth is left as is. An intrinsics override in ``ReaderOptions`` replaces the calibration and
-  disables undistortion (the override describes an ideal pinhole camera).
+* Camera, first that applies: (1) the intrinsics override of ``ReaderOptions`` (``--set
+  dataset.options.fx=... fy= cx= cy=``, optional ``distortion=[k1,k2,p1,p2,k3]``; without it an ideal pinhole);
+  (2) ``intrinsics.yaml`` beside ``rgb.txt`` (format in :mod:`lrslam.frontend.datasets.camera_file`: ``fx, fy,
+  cx, cy`` pixels, optional ``distortion`` and ``depth_scale``); (3) the published Freiburg 1/2/3 calibration
+  (with its distortion model, 640x480 images) when ``freiburg1``/``fr1`` ... appears in the folder name or in
+  ``rgb.txt``'s comment header (the source bag name). With none of them the reader stops with an error: a
+  recording of another camera must not silently get a Freiburg calibration. With ``ReaderOptions.undistort``
+  the colour image is undistorted (same pinhole K, like ESLAM); depth is left as is.
 
 A folder that also holds ``scene.yaml`` is a synthetic scene (:mod:`lrslam.frontend.datasets.synthetic`).
 """
@@ -31,6 +36,7 @@ from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
 from lrslam.frontend.datasets.association import MAX_DIFFERENCE, associate, interpolate_poses
 from lrslam.frontend.datasets.base import Sequence, SourceIndex
+from lrslam.frontend.datasets.camera_file import CAMERA_FILE, read_camera_file
 from lrslam.frontend.datasets.parsing import read_file_list
 from lrslam.frontend.datasets.registry import register
 from lrslam.trajectory_io import TrajectoryFormatError, read_tum
@@ -71,13 +77,24 @@ class TumReader(Sequence):
 
     def _scan(self) -> SourceIndex:
         timestamps, rgb_paths, depth_paths, poses = self._scan_lists()
-        cam = self._freiburg_camera()
-        (fx, fy, cx, cy), dist = FREIBURG_CAMERAS[cam]
-        return SourceIndex(timestamps=timestamps, rgb_paths=rgb_paths, depth_paths=depth_paths,
-                           K=intrinsics_matrix(fx, fy, cx, cy), depth_scale=TUM_DEPTH_SCALE, poses=poses,
-                           distortion=np.asarray(dist),
-                           # Freiburg calibrations are for 640x480 images (unless the user overrides them).
-                           expected_size=None if self.options.fx is not None else (640, 480))
+        K, dist, depth_scale, size = self._camera()
+        return SourceIndex(timestamps=timestamps, rgb_paths=rgb_paths, depth_paths=depth_paths, K=K,
+                           depth_scale=depth_scale, poses=poses, distortion=dist, expected_size=size)
+
+    def _camera(self) -> tuple[np.ndarray, np.ndarray | None, float, tuple[int, int] | None]:
+        """``(K (3, 3), distortion (5,) or None, depth scale, expected native (width, height) or None)``."""
+        if self.options.fx is not None:  # the base class applies the override (and its distortion)
+            return self.options.intrinsics_override(), None, TUM_DEPTH_SCALE, None
+        path = self.root / CAMERA_FILE
+        if path.is_file():
+            cam = read_camera_file(path)
+            dist = None if cam.distortion is None else np.asarray(cam.distortion)
+            return (intrinsics_matrix(cam.fx, cam.fy, cam.cx, cam.cy), dist, cam.depth_scale or TUM_DEPTH_SCALE,
+                    None)
+        n = self._freiburg_camera()
+        (fx, fy, cx, cy), dist = FREIBURG_CAMERAS[n]
+        # Freiburg calibrations are for 640x480 images.
+        return intrinsics_matrix(fx, fy, cx, cy), np.asarray(dist), TUM_DEPTH_SCALE, (640, 480)
 
     def _scan_lists(self) -> tuple[np.ndarray, list[Path], list[Path], np.ndarray | None]:
         """Associated frames: ``(timestamps (N,), rgb paths, depth paths, ground truth (N, 4, 4) or None)``."""
@@ -108,7 +125,7 @@ class TumReader(Sequence):
             log.info("%s: no groundtruth.txt; the sequence has no ground truth", self.root)
             return None
         try:
-            t_gt, T_gt = read_tum(path)
+            t_gt, T_gt = read_tum(path, invalid="nan")  # NaN lines: no ground truth there (as 7-Scenes)
         except TrajectoryFormatError as e:
             raise DatasetError(str(e)) from None
         poses = interpolate_poses(timestamps, t_gt, T_gt, MAX_DIFFERENCE)
@@ -121,10 +138,11 @@ class TumReader(Sequence):
     def _freiburg_camera(self) -> int:
         cam = freiburg_camera_from_name(self.root.resolve().name)
         if cam is None:
-            header = [ln for ln in (self.root / "rgb.txt").read_text().splitlines()[:5] if ln.startswith("#")]
+            header = [ln for ln in (self.root / "rgb.txt").read_text(errors="replace").splitlines()[:5]
+                      if ln.startswith("#")]
             cam = freiburg_camera_from_name(" ".join(header))
         if cam is None:
-            log.warning("%s: folder name names no Freiburg camera (freiburg1/fr1, ...); using the Freiburg 1 "
-                        "calibration", self.root)
-            cam = 1
+            raise DatasetError(f"{self.root}: unknown camera: the folder name names no Freiburg camera (freiburg1/2/3, "
+                               f"fr1/2/3) and there is no {CAMERA_FILE}; write {self.root / CAMERA_FILE} (fx, fy, cx, "
+                               "cy in pixels) or pass --set dataset.options.fx=... (and fy, cx, cy) intrinsics")
         return cam

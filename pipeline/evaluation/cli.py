@@ -1,11 +1,12 @@
 """``lrslam eval ate|mesh``: trajectory and reconstruction metrics from files.
 
 Bad inputs raise :class:`~lrslam.errors.InputError`; ``lrslam.cli.main`` prints them as one ``error: ...`` line.
+A mesh without faces (as given, or after culling) is such an error: its metrics would be infinite. ``--json``
+output is strict JSON (:func:`lrslam.jsonio.dumps`).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -13,6 +14,7 @@ import numpy as np
 import typer
 
 from lrslam.errors import InputError
+from lrslam.jsonio import dumps
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True,
                        help="Evaluate a run: ATE of a TUM trajectory, reconstruction metrics of a mesh.")
@@ -31,7 +33,7 @@ def ate(
 
     res = ate_from_files(est, gt, max_dt=max_dt, align=align)
     if as_json:
-        typer.echo(json.dumps(res.to_dict()))
+        typer.echo(dumps(res.to_dict()))
     else:
         typer.echo(f"ATE RMSE: {res.rmse_cm:.3f} cm  mean: {res.mean_cm:.3f}  median: {res.median_cm:.3f}  "
                    f"max: {res.max_cm:.3f}  ({res.n_matched} matched)")
@@ -48,11 +50,11 @@ def mesh(
     est_traj: Annotated[Optional[Path], typer.Option(
         "--est-traj", help="estimated trajectory (TUM): move the estimated mesh into the GT world with its ATE "
         "alignment to --traj")] = None,
-    threshold: Annotated[float, typer.Option("--threshold", help="completion-ratio threshold [m]")] = 0.05,
+    threshold: Annotated[float, typer.Option("--threshold", min=0.0, help="completion-ratio threshold [m]")] = 0.05,
     protocol: Annotated[str, typer.Option("--protocol", help="eslam | nice-slam | lrslam-v0 (ours before issue "
                                           "11); the options below override its fields")] = "eslam",
     n_points: Annotated[Optional[int], typer.Option(
-        "--n-points", help="points sampled on each mesh [eslam 450000, nice-slam 200000]")] = None,
+        "--n-points", min=1, help="points sampled on each mesh [eslam 450000, nice-slam 200000]")] = None,
     face_rule: Annotated[Optional[str], typer.Option(
         "--face-rule", help="keep a face when any|all of its vertices were seen [any]")] = None,
     icp: Annotated[Optional[bool], typer.Option(
@@ -60,8 +62,8 @@ def mesh(
     occlusion: Annotated[Optional[bool], typer.Option(
         "--occlusion/--no-occlusion", help="cull occluded faces [eslam: on, 0.06 m; nice-slam: off]")] = None,
     max_depth: Annotated[Optional[float], typer.Option("--max-depth", help="culling range [m]")] = None,
-    stride: Annotated[Optional[int], typer.Option("--stride", help="use every n-th pose for culling [1]")] = None,
-    depth_views: Annotated[Optional[int], typer.Option("--depth-views", help="depth-L1 views (0: skip) [1000]")] = None,
+    stride: Annotated[Optional[int], typer.Option("--stride", min=1, help="use every n-th pose for culling [1]")] = None,
+    depth_views: Annotated[Optional[int], typer.Option("--depth-views", min=0, help="depth-L1 views (0: skip) [1000]")] = None,
     depth_l1: Annotated[Optional[str], typer.Option(
         "--depth-l1", help="bbox (NICE-SLAM: random views in the GT box) | trajectory (views near --traj)")] = None,
     seed: Annotated[int, typer.Option("--seed", help="sampling seed")] = 0,
@@ -98,8 +100,10 @@ def mesh(
         raise InputError("--est-traj needs --traj (the ground-truth trajectory to align it to)")
     if proto.depth_views > 0 and proto.depth_l1 == "trajectory" and traj is None:
         raise InputError("--depth-l1 trajectory needs --traj, --intrinsics and --size")
-    est_mesh = load_mesh(est, "estimated mesh")
-    gt_mesh = load_mesh(gt, "ground-truth mesh")
+    if max_depth is not None and not max_depth > 0:
+        raise InputError(f"--max-depth must be > 0 metres, got {max_depth}")
+    est_mesh = _non_empty(load_mesh(est, "estimated mesh"), est, "estimated mesh")
+    gt_mesh = _non_empty(load_mesh(gt, "ground-truth mesh"), gt, "ground-truth mesh")
 
     # 2. Estimated mesh into the ground-truth world.
     if est_traj is not None:
@@ -121,13 +125,20 @@ def mesh(
                         stride=stride, seed=seed)
 
     if as_json:
-        typer.echo(json.dumps(out))
+        typer.echo(dumps(out))
         return
     typer.echo(f"Accuracy: {out['accuracy_cm']:.3f} cm  Completion: {out['completion_cm']:.3f} cm  "
                f"Completion ratio: {out['completion_ratio']:.2f} % (< {100 * threshold:g} cm)  "
                f"({out['n_est']} / {out['n_gt']} faces)")
     if "depth_l1_cm" in out:
         typer.echo(f"Depth L1: {out['depth_l1_cm']:.3f} cm ({proto.depth_views} views, {proto.depth_l1})")
+
+
+def _non_empty(mesh, path: Path, name: str, where: str = ""):
+    """The mesh, or InputError naming its file when it has no faces (its metrics would be infinite)."""
+    if len(mesh.faces) == 0:
+        raise InputError(f"{path}: the {name} has no faces{where}; its metrics would be infinite")
+    return mesh
 
 
 def _floats(text: str, n: int, option: str, form: str) -> list[float]:

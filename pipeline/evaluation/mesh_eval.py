@@ -58,6 +58,9 @@ def evaluate_mesh(est_mesh: trimesh.Trimesh | str | Path, gt_mesh: trimesh.Trime
         unseen = np.asarray(gt.vertices)[~gt_seen]
         gt = keep_seen_faces(gt, gt_seen, p.face_rule)
         est = keep_seen_faces(est, seen_vertices(est, poses, **cull), p.face_rule)
+        for mesh, name in ((gt, "ground-truth mesh"), (est, "estimated mesh")):
+            if len(mesh.faces) == 0:
+                raise InputError(f"the {name} has no faces inside the camera frusta; its metrics would be infinite")
     # 2. ICP refinement of the estimate onto the ground truth (NICE-SLAM / ESLAM get_align_transformation).
     T_icp = icp_align(est, gt, p.icp_threshold) if p.icp else np.eye(4)
     if p.icp:
