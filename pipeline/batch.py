@@ -28,17 +28,13 @@ COLUMNS = [("ate_rmse_cm", "ATE RMSE cm", "{:.2f}"), ("ate_mean_cm", "ATE mean c
 def run_job(sequence: str, config: dict[str, Any], out_dir: str, progress: bool = False) -> dict[str, Any]:
     """Run one (sequence, config) job; returns its metrics (with ``error`` set if it failed).
 
-    ``config`` is a run config as a dict; ``"bound": "auto"`` asks for the pre-pass bound."""
+    ``config`` is a run config as a dict."""
     from lrslam.pipeline.config import RunConfig
     from lrslam.pipeline.run import run_sequence
 
     try:
-        config = dict(config)
-        auto = config.get("bound") == "auto"
-        if auto:
-            config.pop("bound")
         cfg = RunConfig.model_validate(config)
-        return run_sequence(sequence, cfg, out_dir, progress=progress, auto_bound=auto).metrics
+        return run_sequence(sequence, cfg, out_dir, progress=progress).metrics
     except Exception as e:  # one failing job must not lose the others
         log.error("job %s (%s) failed: %s", sequence, config.get("mode"), e)
         return {"mode": config.get("mode"), "error": f"{type(e).__name__}: {e}"}

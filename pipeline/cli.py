@@ -71,8 +71,8 @@ def run(
     demo: bool = typer.Option(False, "--demo", help="Generate the built-in synthetic sequence and run on it."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Write into a non-empty folder that is not an lrslam "
                                                               "run folder (other files in it are kept)."),
-    partial_every: int = typer.Option(10, "--partial-every", min=1, help="Save trajectory_partial.txt every N "
-                                                                         "frames during the run."),
+    partial_every: Optional[int] = typer.Option(None, "--partial-every", min=1, help="Save trajectory_partial.txt "
+                                                "every N frames during the run (= --set output.partial_every=N)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
 ) -> None:
     """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT.
@@ -90,6 +90,8 @@ def run(
     ov = list(overrides or [])
     if max_frames is not None:
         ov.append(f"dataset.options.max_frames={max_frames}")
+    if partial_every is not None:
+        ov.append(f"output.partial_every={partial_every}")
     loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
     check_run_folder(out, overwrite)
     if demo:
@@ -101,8 +103,7 @@ def run(
             generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
     if path is None:
         raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
-    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, partial_every=partial_every,
-                       auto_bound=loaded.auto_bound, presets=loaded.presets)
+    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets)
     for line in _summary_lines(res.metrics, Path(out)):
         typer.echo(line)
     if res.metrics.get("status") == "degraded":
@@ -185,8 +186,6 @@ def batch(
             raise InputError(f"--modes: unknown mode {m!r}: use field, frontend or fused")
         loaded = load_run_config(config, representation, overrides=ov, mode=m)
         configs[m] = loaded.cfg.model_dump(mode="json")
-        if loaded.auto_bound:
-            configs[m]["bound"] = "auto"
     results = run_batch([str(p) for p in paths], configs, out, progress=not quiet)
     typer.echo(comparison_table(results))
     typer.echo(f"wrote {out / 'comparison.md'} and {out / 'comparison.json'}")

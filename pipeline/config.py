@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import Field
 
-from lrslam.config import StrictModel, deep_update, load_yaml
+from lrslam.config import StrictModel, deep_update
 from lrslam.errors import InputError
 
 from lrslam.backend.graph import GraphConfig
@@ -27,7 +27,8 @@ from lrslam.frontend.loop_closure import LoopClosureConfig
 from lrslam.frontend.registration import OdometryConfig
 
 __all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig", "BackendConfig",
-           "MODE_PRESETS", "build_config", "list_presets"]
+           "MODE_PRESETS", "RECORD_KEYS", "build_config", "list_presets", "read_user_yaml",
+           "is_config_file"]
 
 
 class DatasetSection(StrictModel):
@@ -92,7 +93,8 @@ class OutputConfig(StrictModel):
     plots: bool = True
     evaluate: bool = True                  # ATE / mesh metrics when the sequence has ground truth
     eval_mesh_points: int = 100_000
-    tsdf_voxel: float = 0.02               # frontend-mode reference mesh (Open3D TSDF), metres
+    tsdf_voxel: float = Field(0.02, gt=0)  # frontend-mode reference mesh (Open3D TSDF), metres
+    partial_every: int = Field(10, ge=1)   # frames between atomic saves of trajectory_partial.txt
 
 
 class RunConfig(StrictModel):
@@ -101,7 +103,9 @@ class RunConfig(StrictModel):
     mode: Literal["field", "frontend", "fused"] = "fused"
     parts: PartsConfig = PartsConfig()
     dataset: DatasetSection = DatasetSection()
-    bound: list[list[float]] | None = None              # (3,2) metres, world frame; None = from data / auto
+    # (3,2) metres, world frame; "auto": from an odometry pre-pass over the sequence; None: from the data, else the
+    # first frame's points + auto_bound_margin
+    bound: list[list[float]] | Literal["auto"] | None = None
     auto_bound_margin: float = Field(1.0, ge=0)         # metres added around the first frame's points
     initial_pose: Literal["identity", "gt"] = "identity"  # "gt": first pose from GT (ESLAM protocol) when present
     field: FieldSLAMConfig = FieldSLAMConfig()
@@ -146,10 +150,45 @@ def list_presets(kind: str) -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".yaml"))
 
 
+# What a run records in its config.yaml besides the settings (dropped when the file is fed back with --config).
+RECORD_KEYS = ("provenance", "sequence")
+
+
+def read_user_yaml(path: str | Path, flag: str = "--config") -> dict[str, Any]:
+    """A YAML mapping from a user's file, its record sections (:data:`RECORD_KEYS`) dropped; InputError naming
+    the file when it is missing, a folder, unreadable, not UTF-8, not valid YAML or not a mapping. An empty
+    file gives ``{}``."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{flag} {path}: config file not found")
+    if path.is_dir():
+        raise InputError(f"{flag} {path}: is a folder, not a YAML file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{flag} {path}: not a text (UTF-8) file") from None
+    except OSError as e:
+        raise InputError(f"{flag} {path}: cannot read: {e.strerror or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise InputError(f"{flag} {path}: invalid YAML: {' '.join(str(e).split())}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(f"{flag} {path}: the top level must be a mapping (key: value), got a "
+                         f"{type(data).__name__}")
+    return {k: v for k, v in data.items() if k not in RECORD_KEYS}
+
+
+def is_config_file(name: str) -> bool:
+    """Whether a ``--config`` value names a file (rather than a packaged preset)."""
+    return Path(name).suffix in (".yaml", ".yml") or "/" in name or Path(name).exists()
+
+
 def _load_preset(kind: str, name: str) -> dict[str, Any]:
-    path = Path(name)
-    if path.suffix in (".yaml", ".yml") and path.is_file():
-        return load_yaml(path)
+    if kind == "dataset" and is_config_file(name):
+        return read_user_yaml(name)
     f = _preset_dir(kind) / f"{name}.yaml"
     if not f.is_file():
         raise InputError(f"unknown {kind} preset {name!r}; known: {', '.join(list_presets(kind))} "
@@ -180,10 +219,7 @@ def build_config(preset: str | None = None, representation: str | None = None, c
     if representation:
         data = deep_update(data, {"field": {"model": _load_preset("representation", representation)}})
     if config_file:
-        try:
-            data = deep_update(data, load_yaml(config_file))
-        except (FileNotFoundError, ValueError) as e:
-            raise InputError(str(e)) from None
+        data = deep_update(data, read_user_yaml(config_file))
     for item in overrides or []:
         data = deep_update(data, _parse_override(item))
     data = deep_update(data, {k: v for k, v in top_level.items() if v is not None})

@@ -62,9 +62,9 @@ def _open(path: str | Path, cfg: RunConfig):
     return seq
 
 
-def _choose_bound(cfg: RunConfig, seq, first, T0, auto_bound: bool = False) -> tuple[np.ndarray, str]:
-    if auto_bound:
-        b, src = bound_from_prepass(seq, cfg.odometry_config(), T0), "auto (pre-pass)"
+def _choose_bound(cfg: RunConfig, seq, first, T0) -> tuple[np.ndarray, str]:
+    if cfg.bound == "auto":
+        b, src = bound_from_prepass(seq, cfg.odometry, T0), "auto (pre-pass)"
     elif cfg.bound is not None:
         b = np.asarray(cfg.bound, dtype=np.float64)
         src = "config"
@@ -83,12 +83,10 @@ def _check_first_frame(seq, first) -> None:
                          "the map")
 
 
-def _config_record(cfg: RunConfig, seq, auto_bound: bool, prov: dict) -> dict:
-    """config.yaml: the resolved settings (the reader actually used, ``bound: auto`` kept) + ``provenance``."""
+def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
+    """config.yaml: the resolved settings (the reader actually used) + ``provenance``."""
     rec = cfg.resolved()
     rec["dataset"]["reader"] = seq.name
-    if auto_bound:
-        rec["bound"] = "auto"
     return {**rec, "provenance": prov}
 
 
@@ -108,7 +106,7 @@ def _after_frame(i: int, rec, frame, runner: SlamRunner, coverage: BoundCoverage
     log.info("frame %d done: keyframe %s, refine %s%s", i, rec.keyframe, rec.refine_ok,
              "; " + "; ".join(rec.notes) if rec.notes else "")
     if coverage is not None and frame.valid_depth_fraction() > 0:
-        coverage.check(frame, runner.traj.pose(len(runner.traj) - 1))
+        coverage.check(frame, runner.traj.pose(-1))
     if partial.due(i + 1):
         partial.save(runner.poses())
 
@@ -131,27 +129,24 @@ def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndar
 
 
 def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True, *,
-                 overwrite: bool = False, partial_every: int = 10, auto_bound: bool = False,
-                 presets: dict[str, str | None] | None = None) -> RunResult:
+                 overwrite: bool = False, presets: dict[str, str | None] | None = None) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
     ``out_dir`` must be new, empty or an earlier run folder (any non-empty folder with ``overwrite``); its old
-    outputs are deleted first. ``partial_every``: frames between saves of ``trajectory_partial.txt``.
-    ``auto_bound``: estimate the scene bound with an odometry pre-pass (``bound: auto``). ``presets``: the preset
-    names the config came from, for the provenance record.
+    outputs are deleted first (``trajectory_partial.txt`` is saved every ``output.partial_every`` frames;
+    ``bound: auto`` estimates the scene bound with an odometry pre-pass). ``presets``: the preset names the
+    config came from, for the provenance record.
 
     Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
     ``metrics.json``, with ``status`` "ok" or "degraded").
     """
     from tqdm import tqdm
 
-    if partial_every < 1:
-        raise InputError(f"--partial-every must be >= 1 frame, got {partial_every}")
     out_dir = prepare_run_folder(Path(out_dir), overwrite)
     handler = _attach_file_log(out_dir)
     try:
         seq = _open(path, cfg)
-        save_yaml(out_dir / "config.yaml", _config_record(cfg, seq, auto_bound, provenance(path, seq.name, presets)))
+        save_yaml(out_dir / "config.yaml", _config_record(cfg, seq, provenance(path, seq.name, presets)))
         first = seq[0]
         _check_first_frame(seq, first)
         T0 = np.eye(4)
@@ -160,7 +155,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
                 T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
             else:
                 log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
-        bound, bound_src = _choose_bound(cfg, seq, first, T0, auto_bound)
+        bound, bound_src = _choose_bound(cfg, seq, first, T0)
         log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s", path, len(seq), seq.name,
                  np.round(bound, 3).tolist(), bound_src, cfg.mode)
 
@@ -170,7 +165,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
         runner.start(first, T0)
         frame_seconds = [time.perf_counter() - t_start]
         coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
-        partial = PartialTrajectory(out_dir, seq.timestamps, partial_every)
+        partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
         bar = tqdm(range(1, len(seq)), desc=f"lrslam {cfg.mode}", unit="frame", disable=not progress,
                    initial=1, total=len(seq))
         try:

@@ -116,10 +116,10 @@ def test_run_config_yaml_is_accepted_back(tmp_path):
     rec["bound"] = "auto"
     save_yaml(tmp_path / "config.yaml", rec)
     loaded = load_run_config(str(tmp_path / "config.yaml"))
-    assert loaded.auto_bound and loaded.cfg.resolved() == {**cfg.resolved(), "bound": None}
+    assert loaded.cfg.bound == "auto" and loaded.cfg.resolved() == {**cfg.resolved(), "bound": "auto"}
     again = load_run_config(str(tmp_path / "config.yaml"), overrides=["bound=[[0,1],[0,1],[0,1]]"])
-    assert not again.auto_bound and again.cfg.bound == [[0, 1], [0, 1], [0, 1]]
-    assert load_run_config("synthetic", overrides=["bound=auto"]).auto_bound
+    assert again.cfg.bound == [[0, 1], [0, 1], [0, 1]]
+    assert load_run_config("synthetic", overrides=["bound=auto"]).cfg.bound == "auto"
 
 
 def test_read_tum_can_keep_invalid_lines_as_missing_poses(tmp_path):
