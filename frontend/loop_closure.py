@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
@@ -55,6 +56,15 @@ class LoopClosureConfig(StrictModel):
     gates: RegistrationGates = Field(RegistrationGates(max_translation=0.5, max_rotation=30.0),
                                      description="the verification registration's own gates; max_translation / "
                                      "max_rotation bound the drift a loop may correct")
+
+    @field_validator("registration", "gates", mode="before")
+    @classmethod
+    def _over_loop_defaults(cls, value: Any, info: ValidationInfo) -> Any:
+        """A partial section (a YAML file, ``--set loop_closure.gates.max_rotation=25``) overrides the loop's
+        own defaults above, not the generic ones."""
+        if isinstance(value, dict):
+            return cls.model_fields[info.field_name].default.model_dump() | value
+        return value
 
 
 @dataclass(frozen=True)

@@ -145,9 +145,11 @@ def test_frontend_sections_reach_their_parts():
     K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
     bound = np.array([[-2.0, 2.0], [-2.0, 2.0], [-1.0, 3.0]])
     cfg = build_config(mode="fused", overrides=["field.device=cpu", "odometry.registration.refine_iterations=10",
-                                                "odometry.gates.min_fitness=0.4", "odometry.retry_method=kiss"])
+                                                "odometry.gates.min_fitness=0.4", "odometry.retry_method=kiss",
+                                                "loop_closure.gates.max_rotation=25"])
     odo = cfg.odometry
     assert (odo.registration.refine_iterations, odo.gates.min_fitness, odo.retry_method) == (10, 0.4, "kiss")
+    assert (cfg.loop_closure.gates.max_rotation, cfg.loop_closure.gates.max_translation) == (25.0, 0.5)
     p = build_parts(cfg, K, 48, 64, bound)
     assert p.seeder.odometry.cfg == odo
     assert (p.backend.link.registration, p.backend.link.gates) == (odo.registration, odo.gates)
