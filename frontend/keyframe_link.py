@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lrslam.frontend.odometry import OdometryResult
-from lrslam.frontend.registration import OdometryConfig, register_rgbd
+from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, register_rgbd
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
 from lrslam.geometry import propagate_covariance
 
@@ -50,12 +50,12 @@ class KeyframeLink:
     """Accumulates the odometry between keyframes and measures each new keyframe against the previous one.
 
     Args:
-        cfg: registration settings of the keyframe-to-keyframe registration (its gates decide whether the
-            registration or the chain is used).
+        registration: how the keyframe-to-keyframe registration runs.
+        gates: whether it is accepted (else the chain is used).
     """
 
-    def __init__(self, cfg: OdometryConfig):
-        self.cfg = cfg
+    def __init__(self, registration: RegistrationConfig, gates: RegistrationGates):
+        self.registration, self.gates = registration, gates
         self._kf_id: int | None = None
         self._kf_view: RGBDView | None = None
         self._T = np.eye(4)
@@ -80,7 +80,7 @@ class KeyframeLink:
             self.start(kf_id, frame)
             return None
         view = RGBDView(*_images(frame))
-        reg = register_rgbd(view, self._kf_view, self._T, self.cfg)
+        reg = register_rgbd(view, self._kf_view, self._T, self.registration, self.gates)
         if reg.ok:
             out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), reg.T_tgt_src, reg.information, "registration",
                                           self._frames)

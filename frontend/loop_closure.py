@@ -20,24 +20,21 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
 from lrslam.frontend.keyframes import view_overlap
-from lrslam.frontend.registration import OdometryConfig, register_rgbd
+from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, register_rgbd
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
 from lrslam.geometry import inv, is_valid_pose, pose_error
 
 __all__ = ["LoopClosureConfig", "LoopConstraint", "LoopCloser"]
 
 log = logging.getLogger(__name__)
-
-
-def _loop_registration() -> OdometryConfig:
-    return OdometryConfig(method="rgbd", iterations=(30, 20, 10), max_translation=0.5, max_rotation=30.0)
 
 
 class LoopClosureConfig(StrictModel):
@@ -51,12 +48,23 @@ class LoopClosureConfig(StrictModel):
     downsample: int = Field(2, ge=1, description="keyframes are stored this many times smaller per side")
     use_orb: bool = False
     min_orb_matches: int = Field(30, ge=1)
-    # Strict gates applied after the registration's own.
+    # Strict gates applied after the registration's own (``gates``).
     min_fitness: float = Field(0.5, ge=0, le=1)
     max_inlier_rmse: float = Field(0.015, gt=0)
-    registration: OdometryConfig = Field(default_factory=_loop_registration,
-                                         description="registration used for verification; its max_translation "
-                                         "/ max_rotation bound the drift a loop may correct")
+    registration: RegistrationConfig = Field(RegistrationConfig(method="rgbd", iterations=(30, 20, 10)),
+                                             description="registration used for verification")
+    gates: RegistrationGates = Field(RegistrationGates(max_translation=0.5, max_rotation=30.0),
+                                     description="the verification registration's own gates; max_translation / "
+                                     "max_rotation bound the drift a loop may correct")
+
+    @field_validator("registration", "gates", mode="before")
+    @classmethod
+    def _over_loop_defaults(cls, value: Any, info: ValidationInfo) -> Any:
+        """A partial section (a YAML file, ``--set loop_closure.gates.max_rotation=25``) overrides the loop's
+        own defaults above, not the generic ones."""
+        if isinstance(value, dict):
+            return cls.model_fields[info.field_name].default.model_dump() | value
+        return value
 
 
 @dataclass(frozen=True)
@@ -149,7 +157,7 @@ class LoopCloser:
             reason = self._verify_appearance(orb, self._kfs[i].orb)
             if reason is None:
                 T_i_j_pred = inv(poses[i]) @ T
-                res = register_rgbd(view, self._kfs[i].view, T_i_j_pred, c.registration)
+                res = register_rgbd(view, self._kfs[i].view, T_i_j_pred, c.registration, c.gates)
                 if not res.ok:
                     reason = res.reason
                 elif res.fitness < c.min_fitness:

@@ -4,7 +4,8 @@ Per frame (:meth:`Odometry.track`):
 
 1. predict ``T_w_pred = T_w_last @ inv(T_w_prev) @ T_w_last`` (constant velocity);
 2. register the frame to the reference frame from ``inv(T_w_ref) @ T_w_pred`` (:func:`register_rgbd`);
-3. gate: registration gates (fitness, inlier RMSE, correction) and the per-frame motion;
+3. gate: registration gates (``gates``: fitness, inlier RMSE, correction) and the per-frame motion
+   (bounded by the same ``gates.max_translation`` / ``gates.max_rotation``);
 4. retry a failed registration (``retry``): from zero motion instead of the constant-velocity guess, then with
    the other registration method (``retry_method``) -- fast or jerky motion breaks the velocity guess first;
 5. on failure of every attempt (frame without depth, featureless frame, Open3D error, failed gate) keep the
@@ -23,19 +24,41 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from dataclasses import field as dc_field
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from lrslam.camera import check_intrinsics
+from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.frontend.registration import (OdometryConfig, fallback_information, frame_problem,
-                                          register_rgbd)
+from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates, fallback_information,
+                                          frame_problem, register_rgbd)
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
 from lrslam.geometry import inv, is_valid_pose, pose_error
 
 __all__ = ["OdometryConfig", "OdometryResult", "Odometry"]
 
 log = logging.getLogger(__name__)
+
+
+class OdometryConfig(StrictModel):
+    """Frame-to-frame odometry: how each frame is registered (``registration``), when a registration is
+    accepted (``gates``; its ``max_translation`` / ``max_rotation`` also bound the motion per frame), and how
+    the reference and failures are handled. Distances in metres, angles in degrees."""
+
+    mode: Literal["frame", "keyframe"] = Field(
+        "frame", description="register each frame to the previous frame, or to the current reference keyframe")
+    registration: RegistrationConfig = RegistrationConfig()
+    gates: RegistrationGates = RegistrationGates()
+    # Keyframe-mode reference switching, recovery after repeated failures.
+    reference_max_translation: float = Field(0.3, gt=0)
+    reference_max_rotation: float = Field(15.0, gt=0)
+    reference_min_fitness: float = Field(0.6, ge=0, le=1)
+    max_consecutive_failures: int = Field(3, ge=0)
+    # Retries of a failed registration (zero-motion guess, then the other method).
+    retry: bool = True
+    retry_method: Literal["rgbd", "icp", "kiss", "none"] = "icp"
 
 
 @dataclass(frozen=True)
@@ -132,7 +155,8 @@ class Odometry:
         """Estimate the pose of ``frame`` (needs ``index``, ``rgb``, ``depth``, ``K``; see module docstring)."""
         index = int(frame.index)
         view = self._view(frame)
-        problem = frame_problem(view, self.cfg)
+        gates = self.cfg.gates
+        problem = frame_problem(view, self.cfg.registration, gates)
         if self._last_index is None:
             return self._first(index, view, problem)
 
@@ -141,13 +165,13 @@ class Odometry:
         reg, reason, attempt, T_w_c = None, problem or "no reference frame yet", "", T_w_pred
         if self._ref is not None:
             # 2-4. Register to the reference (and retry), gate the per-frame motion.
-            for name, T_w_init, cfg in self._attempts(T_w_pred):
-                reg = register_rgbd(view, self._ref, inv(self._T_w_ref) @ T_w_init, cfg)
+            for name, T_w_init, registration in self._attempts(T_w_pred):
+                reg = register_rgbd(view, self._ref, inv(self._T_w_ref) @ T_w_init, registration, gates)
                 reason = reg.reason
                 if reg.ok:
                     T_cand = self._T_w_ref @ reg.T_tgt_src
                     d_t, d_r = pose_error(self._T_w_last, T_cand)
-                    if d_t > self.cfg.max_translation or d_r > self.cfg.max_rotation:
+                    if d_t > gates.max_translation or d_r > gates.max_rotation:
                         reason = f"motion since the last frame too large ({d_t:.3f} m, {d_r:.1f} deg)"
                     else:
                         T_w_c, attempt = T_cand, name
@@ -162,7 +186,7 @@ class Odometry:
             info = reg.information
         else:
             # 4. Fallback to the prediction.
-            info = fallback_information(self.cfg)
+            info = fallback_information(gates)
             log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
         result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
                                 reg.fitness if reg is not None else 0.0,
@@ -176,13 +200,14 @@ class Odometry:
         return result
 
     def _attempts(self, T_w_pred: np.ndarray):
-        """(name, initial world pose, registration config) to try in order."""
-        yield "velocity", T_w_pred, self.cfg
+        """(name, initial world pose, registration config) to try in order (all under the same gates)."""
+        registration, retry_method = self.cfg.registration, self.cfg.retry_method
+        yield "velocity", T_w_pred, registration
         if not self.cfg.retry:
             return
-        yield "zero-motion", self._T_w_last, self.cfg
-        if self.cfg.retry_method not in ("none", self.cfg.method):
-            yield self.cfg.retry_method, T_w_pred, self.cfg.model_copy(update={"method": self.cfg.retry_method})
+        yield "zero-motion", self._T_w_last, registration
+        if retry_method not in ("none", registration.method):
+            yield retry_method, T_w_pred, registration.model_copy(update={"method": retry_method})
 
     def _first(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
         self._last_index = index
@@ -193,7 +218,7 @@ class Odometry:
         else:
             reason, ok = f"first frame: {problem}", False
             log.info("frame %d: %s", index, reason)
-        return OdometryResult(index, self._T_w_c0.copy(), np.eye(4), index, fallback_information(self.cfg), ok,
+        return OdometryResult(index, self._T_w_c0.copy(), np.eye(4), index, fallback_information(self.cfg.gates), ok,
                               1.0 if ok else 0.0, 0.0 if ok else float("inf"), reason)
 
     def _update_reference(self, index: int, view: RGBDView, problem: str | None, res: OdometryResult) -> None:

@@ -1,11 +1,13 @@
 """Pairwise RGB-D registration: Open3D hybrid RGB-D odometry, Open3D ICP, or KISS-ICP, behind one function.
 
-``register_rgbd(source, target, init_T_tgt_src, cfg)`` returns ``T_tgt_src``: the pose of the source camera in
-the target camera, i.e. it maps source-camera points into the target camera (``inv(T_w_tgt) @ T_w_src``). This
-is what Open3D's ``rgbd_odometry_multi_scale`` and ``registration.icp`` return for (source, target), and what
-GTSAM's ``BetweenFactorPose3(tgt, src, T_tgt_src)`` expects.
+``register_rgbd(source, target, init_T_tgt_src, registration, gates)`` returns ``T_tgt_src``: the pose of the
+source camera in the target camera, i.e. it maps source-camera points into the target camera
+(``inv(T_w_tgt) @ T_w_src``). This is what Open3D's ``rgbd_odometry_multi_scale`` and ``registration.icp``
+return for (source, target), and what GTSAM's ``BetweenFactorPose3(tgt, src, T_tgt_src)`` expects.
+``registration`` (:class:`RegistrationConfig`) says how to register, ``gates`` (:class:`RegistrationGates`)
+when to accept.
 
-Methods (``OdometryConfig.method``):
+Methods (``RegistrationConfig.method``):
 
 - ``rgbd``: ``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`` with ``Method.Hybrid`` (photometric +
   geometric, image pyramid). Open3D's photometric term associates each source pixel with the *nearest* target
@@ -21,7 +23,8 @@ Methods (``OdometryConfig.method``):
   only in neighbouring voxels, so one fine scale cannot recover more than about a voxel of motion).
 
 Whatever the method, fitness, inlier RMSE and the information matrix come from one projective measure
-(:func:`lrslam.frontend.rgbd_view.assess_alignment`), and the same gates decide ``ok``.
+(:func:`lrslam.frontend.rgbd_view.assess_alignment`), and the same gates (:class:`RegistrationGates`)
+decide ``ok``.
 """
 
 from __future__ import annotations
@@ -41,7 +44,8 @@ from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alig
                                        normal_spread, valid_mask, view_problem)
 from lrslam.geometry import diagonal_information, is_valid_pose, pose_error
 
-__all__ = ["OdometryConfig", "RegistrationResult", "register_rgbd", "fallback_information", "frame_problem"]
+__all__ = ["RegistrationConfig", "RegistrationGates", "RegistrationResult", "register_rgbd", "fallback_information",
+           "frame_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +55,11 @@ _POLISH_MAX_TRANSLATION = 0.02
 _POLISH_MAX_ROTATION = 1.0
 
 
-class OdometryConfig(StrictModel):
-    """Frontend odometry / pairwise registration settings. Distances in metres, angles in degrees."""
+class RegistrationConfig(StrictModel):
+    """How a pairwise registration runs: method, depth range, iterations, method parameters and the
+    information normalisation. Distances in metres."""
 
     method: Literal["rgbd", "icp", "kiss"] = "rgbd"
-    mode: Literal["frame", "keyframe"] = Field(
-        "frame", description="register each frame to the previous frame, or to the current reference keyframe")
     depth_min: float = Field(0.1, gt=0)
     depth_max: float = Field(4.0, gt=0)
     # Iterations per scale, coarse to fine: image pyramid levels (rgbd) or voxel scales (icp).
@@ -81,12 +84,32 @@ class OdometryConfig(StrictModel):
     max_correspondence_distance: float = Field(0.05, gt=0)
     information_sigma: float = Field(0.01, gt=0, description="unit point noise (m) of the normalised "
                                      "information; the inlier RMSE replaces it when larger")
-    # Gates.
+
+    @model_validator(mode="after")
+    def _check(self) -> "RegistrationConfig":
+        if self.depth_min >= self.depth_max:
+            raise ValueError(f"depth_min ({self.depth_min}) must be < depth_max ({self.depth_max})")
+        if not self.iterations or any(i <= 0 for i in self.iterations):
+            raise ValueError(f"iterations must be a non-empty list of positive counts, got {self.iterations}")
+        return self
+
+    @property
+    def uses_colour(self) -> bool:
+        """The method's cost uses colour (so a textured frame with degenerate geometry is still usable)."""
+        return self.method == "rgbd" or (self.method == "icp" and self.icp_estimation == "colored")
+
+
+class RegistrationGates(StrictModel):
+    """When a frame can be registered and a registration is accepted, and the information of a failed one.
+    Distances in metres, angles in degrees."""
+
+    # Result gates.
     min_fitness: float = Field(0.3, ge=0, le=1)
     max_inlier_rmse: float = Field(0.03, gt=0)
     max_translation: float = Field(0.3, gt=0, description="largest correction of the initial guess, and (in "
                                    "Odometry) largest motion per frame (m)")
     max_rotation: float = Field(20.0, gt=0, description="same, rotation (deg)")
+    # Frame gates (frame_problem); min_normal_spread also decides whether the rgbd polish runs.
     min_valid_depth_fraction: float = Field(0.05, ge=0, le=1)
     min_intensity_std: float = Field(0.01, ge=0, description="grey-level std (0..1) below which a frame is "
                                      "textureless")
@@ -95,22 +118,6 @@ class OdometryConfig(StrictModel):
     # Information of a failed registration (the constant-velocity prediction stands in).
     fallback_sigma_translation: float = Field(0.2, gt=0)
     fallback_sigma_rotation: float = Field(10.0, gt=0)
-    # Odometry: keyframe-mode reference switching, recovery after repeated failures.
-    reference_max_translation: float = Field(0.3, gt=0)
-    reference_max_rotation: float = Field(15.0, gt=0)
-    reference_min_fitness: float = Field(0.6, ge=0, le=1)
-    max_consecutive_failures: int = Field(3, ge=0)
-    # Odometry: retries of a failed registration (zero-motion guess, then the other method).
-    retry: bool = True
-    retry_method: Literal["rgbd", "icp", "kiss", "none"] = "icp"
-
-    @model_validator(mode="after")
-    def _check(self) -> "OdometryConfig":
-        if self.depth_min >= self.depth_max:
-            raise ValueError(f"depth_min ({self.depth_min}) must be < depth_max ({self.depth_max})")
-        if not self.iterations or any(i <= 0 for i in self.iterations):
-            raise ValueError(f"iterations must be a non-empty list of positive counts, got {self.iterations}")
-        return self
 
 
 @dataclass(frozen=True)
@@ -121,7 +128,7 @@ class RegistrationResult:
         T_tgt_src: (4, 4) pose of the source camera in the target camera (the initial guess when not ok).
         information: (6, 6) information of ``T_tgt_src`` (right perturbation, ``[rotation, translation]``;
             see :func:`~lrslam.frontend.rgbd_view.assess_alignment`), with unit point noise
-            ``max(cfg.information_sigma, inlier_rmse)``; :func:`fallback_information` when not ok.
+            ``max(registration.information_sigma, inlier_rmse)``; :func:`fallback_information` when not ok.
         fitness: inlier fraction of the source's valid pixels (0..1).
         inlier_rmse: metres (inf when unknown).
         ok: all gates passed.
@@ -136,22 +143,23 @@ class RegistrationResult:
     reason: str = ""
 
 
-def fallback_information(cfg: OdometryConfig) -> np.ndarray:
+def fallback_information(gates: RegistrationGates) -> np.ndarray:
     """Weak diagonal information used when a registration fails (its pose is a prediction, not a measurement)."""
-    return diagonal_information(np.radians(cfg.fallback_sigma_rotation), cfg.fallback_sigma_translation)
+    return diagonal_information(np.radians(gates.fallback_sigma_rotation), gates.fallback_sigma_translation)
 
 
-def frame_problem(view: RGBDView, cfg: OdometryConfig) -> str | None:
-    """Why ``view`` cannot be registered with ``cfg``'s method (no valid depth, featureless), or None."""
-    uses_colour = cfg.method == "rgbd" or (cfg.method == "icp" and cfg.icp_estimation == "colored")
-    return view_problem(view, depth_min=cfg.depth_min, depth_max=cfg.depth_max,
-                        min_valid_fraction=cfg.min_valid_depth_fraction, min_intensity_std=cfg.min_intensity_std,
-                        min_normal_spread=cfg.min_normal_spread, uses_colour=uses_colour)
+def frame_problem(view: RGBDView, registration: RegistrationConfig, gates: RegistrationGates) -> str | None:
+    """Why ``view`` cannot be registered with ``registration``'s method under ``gates`` (no valid depth,
+    featureless), or None."""
+    return view_problem(view, depth_min=registration.depth_min, depth_max=registration.depth_max,
+                        min_valid_fraction=gates.min_valid_depth_fraction, min_intensity_std=gates.min_intensity_std,
+                        min_normal_spread=gates.min_normal_spread, uses_colour=registration.uses_colour)
 
 
 def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, init_T_tgt_src: np.ndarray,
-                  cfg: OdometryConfig) -> RegistrationResult:
-    """Register the source RGB-D frame to the target one, starting from ``init_T_tgt_src`` (4x4).
+                  registration: RegistrationConfig, gates: RegistrationGates) -> RegistrationResult:
+    """Register the source RGB-D frame to the target one with ``registration``, starting from
+    ``init_T_tgt_src`` (4x4), and accept or reject the result with ``gates``.
 
     Frames: anything with ``rgb (H, W, 3) uint8``, ``depth (H, W) float32`` metres and ``K (3, 3)``, or an
     :class:`RGBDView` (keeps preprocessing cached across calls). Never raises on bad image content: a frame
@@ -159,6 +167,7 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
     ``ok=False`` with the initial guess, weak information and the reason (also logged at INFO). Malformed
     arrays (wrong shapes) or a non-rigid ``init_T_tgt_src`` raise :class:`~lrslam.errors.InputError`.
     """
+    cfg, method = registration, registration.method  # gates only decide acceptance
     src, tgt = as_view(source), as_view(target)
     init = np.asarray(init_T_tgt_src, dtype=np.float64)
     if not is_valid_pose(init):
@@ -166,33 +175,35 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
 
     def fail(reason: str, fitness: float = 0.0, rmse: float = float("inf")) -> RegistrationResult:
         log.info("registration rejected: %s", reason)
-        return RegistrationResult(init.copy(), fallback_information(cfg), fitness, rmse, False, reason)
+        return RegistrationResult(init.copy(), fallback_information(gates), fitness, rmse, False, reason)
 
     # 1. Can these views be registered at all?
     for name, view in (("source", src), ("target", tgt)):
-        problem = frame_problem(view, cfg)
+        problem = frame_problem(view, cfg, gates)
         if problem is not None:
             return fail(f"{name}: {problem}")
 
     # 2. Register.
     try:
-        T = {"rgbd": _register_o3d_rgbd, "icp": _register_o3d_icp, "kiss": _register_kiss}[cfg.method](
-            src, tgt, init, cfg)
+        if method == "rgbd":
+            T = _register_o3d_rgbd(src, tgt, init, cfg, polish_min_normal_spread=gates.min_normal_spread)
+        else:
+            T = {"icp": _register_o3d_icp, "kiss": _register_kiss}[method](src, tgt, init, cfg)
     except Exception as e:  # Open3D / KISS-ICP raise RuntimeError on degenerate systems, empty clouds, ...
-        return fail(f"{cfg.method} registration raised {type(e).__name__}: {_one_line(e)}")
+        return fail(f"{method} registration raised {type(e).__name__}: {_one_line(e)}")
     if not is_valid_pose(T, tol=1e-3):
-        return fail(f"{cfg.method} registration returned a non-rigid or non-finite transform")
+        return fail(f"{method} registration returned a non-rigid or non-finite transform")
     T = _orthonormalise(T)
 
     # 3. Measure and gate.
     q = assess_alignment(src, tgt, T, max_distance=cfg.max_correspondence_distance, depth_min=cfg.depth_min,
                          depth_max=cfg.depth_max, sigma_m=cfg.information_sigma)
     d_t, d_r = pose_error(init, T)
-    if q.fitness < cfg.min_fitness:
-        return fail(f"fitness {q.fitness:.3f} < {cfg.min_fitness}", q.fitness, q.inlier_rmse)
-    if q.inlier_rmse > cfg.max_inlier_rmse:
-        return fail(f"inlier RMSE {q.inlier_rmse:.4f} m > {cfg.max_inlier_rmse}", q.fitness, q.inlier_rmse)
-    if d_t > cfg.max_translation or d_r > cfg.max_rotation:
+    if q.fitness < gates.min_fitness:
+        return fail(f"fitness {q.fitness:.3f} < {gates.min_fitness}", q.fitness, q.inlier_rmse)
+    if q.inlier_rmse > gates.max_inlier_rmse:
+        return fail(f"inlier RMSE {q.inlier_rmse:.4f} m > {gates.max_inlier_rmse}", q.fitness, q.inlier_rmse)
+    if d_t > gates.max_translation or d_r > gates.max_rotation:
         return fail(f"correction of the initial guess too large ({d_t:.3f} m, {d_r:.1f} deg)", q.fitness,
                     q.inlier_rmse)
     info = q.information * (cfg.information_sigma / max(cfg.information_sigma, q.inlier_rmse)) ** 2
@@ -228,7 +239,10 @@ def _o3d_rgbd(view: RGBDView):
     return view.cached("o3d_rgbd", build)
 
 
-def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: RegistrationConfig,
+                       polish_min_normal_spread: float) -> np.ndarray:
+    """Hybrid RGB-D odometry, then the point-to-plane polish when ``cfg.refine_iterations`` > 0 and the
+    source's normal spread is at least ``polish_min_normal_spread`` (geometry well conditioned)."""
     import open3d as o3d
 
     od = o3d.t.pipelines.odometry
@@ -242,7 +256,7 @@ def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odom
                                        cfg.depth_max, criteria, od.Method.Hybrid, params)
     T = res.transformation.numpy().astype(np.float64)
     if (cfg.refine_iterations > 0 and is_valid_pose(T, tol=1e-3)
-            and normal_spread(src, cfg.depth_min, cfg.depth_max) >= cfg.min_normal_spread):
+            and normal_spread(src, cfg.depth_min, cfg.depth_max) >= polish_min_normal_spread):
         # Full-resolution point-to-plane polish (removes the nearest-pixel bias of the photometric term).
         polish = od.rgbd_odometry_multi_scale(
             _o3d_rgbd(src), _o3d_rgbd(tgt), K, o3d.core.Tensor(T), 1.0, cfg.depth_max,
@@ -261,7 +275,7 @@ def _register_o3d_rgbd(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odom
 # Back-projected points (ICP, KISS-ICP)
 
 
-def _points(view: RGBDView, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:
+def _points(view: RGBDView, cfg: RegistrationConfig) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points (N, 3) float64 and colours (N, 3) float in [0, 1] of the valid pixels."""
     key = ("points", cfg.depth_min, cfg.depth_max)
 
@@ -272,7 +286,7 @@ def _points(view: RGBDView, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray
     return view.cached(key, build)
 
 
-def _o3d_cloud(view: RGBDView, cfg: OdometryConfig):
+def _o3d_cloud(view: RGBDView, cfg: RegistrationConfig):
     """Open3D tensor point cloud downsampled at the finest voxel size, with normals and colours."""
     import open3d as o3d
 
@@ -289,7 +303,7 @@ def _o3d_cloud(view: RGBDView, cfg: OdometryConfig):
     return view.cached(key, build)
 
 
-def _register_o3d_icp(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+def _register_o3d_icp(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
     import open3d as o3d
 
     reg = o3d.t.pipelines.registration
@@ -306,7 +320,7 @@ def _register_o3d_icp(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: Odome
     return res.transformation.numpy().astype(np.float64)
 
 
-def _register_kiss(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
+def _register_kiss(src: RGBDView, tgt: RGBDView, init: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
     """KISS-ICP's point-to-map registration, coarse to fine. At each scale with voxel size ``v`` the target map
     keeps the points at ``v / 2`` and the source is registered at ``1.5 v`` (as ``KissICP.voxelize``), with
     kernel ``v`` and correspondences up to ``3 v`` (its search only reaches neighbouring voxels, so a single

@@ -24,7 +24,7 @@ from lrslam.backend.graph import GraphConfig
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.frontend.keyframes import KeyframeConfig
 from lrslam.frontend.loop_closure import LoopClosureConfig
-from lrslam.frontend.registration import OdometryConfig
+from lrslam.frontend.odometry import OdometryConfig
 
 __all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig", "BackendConfig",
            "MODE_PRESETS", "RECORD_KEYS", "build_config", "list_presets", "read_user_yaml",

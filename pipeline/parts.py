@@ -294,6 +294,7 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
         from lrslam.frontend.loop_closure import LoopCloser
 
         g = cfg.graph
-        backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure), KeyframeLink(cfg.odometry),
+        backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),
+                               KeyframeLink(cfg.odometry.registration, cfg.odometry.gates),
                                diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation))
     return Parts(seeder, refiner, keyframer, mapper, backend, field)

@@ -103,3 +103,19 @@ def test_orb_appearance_check(scene):
     elsewhere = make_frame(room, look_at(np.array([0.3, 0.0, 0.5]), np.array([2.0, 0.3, 1.0])), index=6)
     assert closer.detect(6, elsewhere, _poses(frames, frames[0].T_w_c_gt)) == []
     assert "ORB matches" in closer.rejections[0][1]  # rejected before any registration
+
+
+def test_verification_registration_keeps_the_loop_defaults():
+    """Same numbers as before the split (an odometry config with 30/20/10 iterations and 0.5 m / 30 deg of
+    correction); a partial section overrides those, not the generic defaults."""
+    from lrslam.frontend.registration import RegistrationConfig, RegistrationGates
+
+    c = LoopClosureConfig()
+    assert c.registration == RegistrationConfig(iterations=(30, 20, 10))
+    assert c.gates == RegistrationGates(max_translation=0.5, max_rotation=30.0)
+    part = LoopClosureConfig.model_validate({"registration": {"refine_iterations": 5},
+                                             "gates": {"max_rotation": 25.0}})
+    assert part.registration == RegistrationConfig(iterations=(30, 20, 10), refine_iterations=5)
+    assert part.gates == RegistrationGates(max_translation=0.5, max_rotation=25.0)
+    with pytest.raises(ValueError):
+        LoopClosureConfig.model_validate({"gates": {"method": "icp"}})

@@ -11,13 +11,13 @@ from frontend_fixtures import T_W_C_REF, make_frame, make_room
 from lrslam.errors import InputError
 from lrslam.frontend.frame import Frame
 from lrslam.frontend.odometry import Odometry, OdometryConfig
-from lrslam.frontend.registration import fallback_information
+from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, fallback_information
 from lrslam.geometry import exp_se3, inv, pose_error
 
 
 # With the point-to-plane polish each registration is good to ~0.3 mm on the synthetic room, so tight pose
 # thresholds check the odometry's bookkeeping (composition, references, fallbacks), not Open3D's bias.
-ACCURATE = {"refine_iterations": 10}
+ACCURATE = {"registration": RegistrationConfig(refine_iterations=10)}
 
 
 def _trajectory(n: int) -> list[np.ndarray]:
@@ -71,7 +71,7 @@ def test_unusable_frame_falls_back_to_constant_velocity(with_depth, sequence, ca
     assert not bad.ok and bad.reason
     assert "constant-velocity prediction" in caplog.text
     np.testing.assert_allclose(bad.T_w_c, predicted)
-    np.testing.assert_array_equal(bad.information, fallback_information(OdometryConfig()))
+    np.testing.assert_array_equal(bad.information, fallback_information(RegistrationGates()))
     assert bad.ref_index == 2  # the blank frame never becomes the reference
     # The next good frame registers against the last good one and recovers.
     good = odo.track(sequence[4])
@@ -113,7 +113,7 @@ def test_failed_velocity_guess_is_retried(sequence):
     """A constant-velocity guess far off (the camera stopped) fails the registration's correction gate; the
     zero-motion retry recovers the frame."""
     f0 = sequence[0]
-    cfg = OdometryConfig(max_translation=0.05, max_rotation=3.0)
+    cfg = OdometryConfig(gates=RegistrationGates(max_translation=0.05, max_rotation=3.0))
     odo = Odometry(cfg, f0.K, f0.height, f0.width)
     odo.reset(np.eye(4), f0)
     odo._T_w_prev = exp_se3(np.array([0.0, 0.0, 0.0, -0.2, 0.0, 0.0]))  # a 20 cm "velocity" that is not there
@@ -127,7 +127,8 @@ def test_failed_velocity_guess_is_retried(sequence):
 
 def test_repeated_failures_reanchor_the_reference(sequence):
     f0 = sequence[0]
-    cfg = OdometryConfig(max_consecutive_failures=1, min_fitness=0.999)  # every registration fails its gate
+    # every registration fails its gate
+    cfg = OdometryConfig(max_consecutive_failures=1, gates=RegistrationGates(min_fitness=0.999))
     odo = Odometry(cfg, f0.K, f0.height, f0.width)
     odo.track(sequence[0])
     assert not odo.track(sequence[1]).ok and odo.reference_index == 0
@@ -160,3 +161,44 @@ def test_pipeline_can_choose_the_reference(sequence):
     assert d_t < 0.002 and d_r < 0.2
     odo.track(_blank(sequence[4], with_depth=False))
     assert not odo.use_last_as_reference() and odo.reference_index == 2
+
+
+# The flat OdometryConfig before it was split into registration / gates / odometry (34 fields, its defaults).
+FLAT_DEFAULTS = {
+    "method": "rgbd", "mode": "frame", "depth_min": 0.1, "depth_max": 4.0, "iterations": (20, 10, 5),
+    "relative_rmse": 1e-06, "relative_fitness": 1e-06, "depth_outlier_trunc": 0.07, "depth_huber_delta": 0.05,
+    "intensity_huber_delta": 0.1, "refine_iterations": 0, "voxel_size": 0.02, "icp_estimation": "point_to_plane",
+    "icp_distance_factor": 2.5, "kiss_levels": 4, "kiss_max_points_per_voxel": 20, "kiss_max_iterations": 100,
+    "max_correspondence_distance": 0.05, "information_sigma": 0.01, "min_fitness": 0.3, "max_inlier_rmse": 0.03,
+    "max_translation": 0.3, "max_rotation": 20.0, "min_valid_depth_fraction": 0.05, "min_intensity_std": 0.01,
+    "min_normal_spread": 0.01, "fallback_sigma_translation": 0.2, "fallback_sigma_rotation": 10.0,
+    "reference_max_translation": 0.3, "reference_max_rotation": 15.0, "reference_min_fitness": 0.6,
+    "max_consecutive_failures": 3, "retry": True, "retry_method": "icp",
+}
+
+
+def test_split_config_keeps_every_flat_default_once():
+    d = OdometryConfig().model_dump()
+    registration, gates = d.pop("registration"), d.pop("gates")
+    assert not (registration.keys() & gates.keys() or registration.keys() & d.keys() or gates.keys() & d.keys())
+    assert registration | gates | d == FLAT_DEFAULTS
+    assert RegistrationConfig().model_dump() == registration and RegistrationGates().model_dump() == gates
+
+
+@pytest.mark.parametrize("model, key", [(OdometryConfig, "min_fitness"), (OdometryConfig, "refine_iterations"),
+                                        (RegistrationConfig, "max_translation"), (RegistrationConfig, "retry"),
+                                        (RegistrationGates, "method"), (RegistrationGates, "mode"),
+                                        (RegistrationGates, "min_fitnes")])
+def test_split_configs_reject_keys_of_the_other_sections(model, key):
+    with pytest.raises(ValueError, match="Extra inputs are not permitted"):
+        model(**{key: FLAT_DEFAULTS.get(key, 0.3)})
+
+
+def test_odometry_sections_are_typed():
+    cfg = OdometryConfig.model_validate({"registration": {"refine_iterations": 10}, "gates": {"min_fitness": 0.4}})
+    assert cfg.registration == RegistrationConfig(refine_iterations=10)
+    assert cfg.gates == RegistrationGates(min_fitness=0.4)
+    with pytest.raises(ValueError, match="Extra inputs are not permitted"):
+        OdometryConfig(registration={"min_fitness": 0.3})
+    with pytest.raises(ValueError, match="depth_min"):
+        OdometryConfig(registration={"depth_min": 5.0})

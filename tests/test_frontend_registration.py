@@ -9,7 +9,8 @@ import pytest
 
 from frontend_fixtures import T_W_C_REF, look_at, make_frame, make_room
 from lrslam.frontend.frame import Frame
-from lrslam.frontend.registration import OdometryConfig, fallback_information, register_rgbd
+from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates, fallback_information,
+                                          register_rgbd)
 from lrslam.frontend.rgbd_view import as_view, assess_alignment
 from lrslam.geometry import adjoint
 from lrslam.geometry import pose_error, random_pose
@@ -24,6 +25,7 @@ CASES = {
     "icp-colored": ({"method": "icp", "icp_estimation": "colored"}, (0.002, 0.2)),
     "kiss": ({"method": "kiss"}, (0.005, 0.5)),
 }
+GATES = RegistrationGates()
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +49,9 @@ def pairs(room):
 @pytest.mark.parametrize("case", list(CASES))
 def test_recovers_known_motion(case, pairs):
     kwargs, (max_t, max_r) = CASES[case]
-    cfg = OdometryConfig(**kwargs)
+    cfg = RegistrationConfig(**kwargs)
     for source, target, T_true in pairs:
-        res = register_rgbd(source, target, np.eye(4), cfg)
+        res = register_rgbd(source, target, np.eye(4), cfg, GATES)
         assert res.ok, res.reason
         d_t, d_r = pose_error(res.T_tgt_src, T_true)
         assert d_t < max_t and d_r < max_r, (case, d_t, d_r)
@@ -92,11 +94,11 @@ def test_unusable_frames_fail_gracefully(method, depth_value, expected, pairs):
     """No depth at all, or a blank frame (uniform grey flat wall): ok False with the reason, no exception."""
     source, target, _ = pairs[0]
     init = random_pose(np.random.default_rng(2), 0.05, 3.0)
-    res = register_rgbd(_blank(source, depth_value), target, init, OdometryConfig(method=method))
+    res = register_rgbd(_blank(source, depth_value), target, init, RegistrationConfig(method=method), GATES)
     assert not res.ok
     assert re.search(expected, res.reason), res.reason
     np.testing.assert_array_equal(res.T_tgt_src, init)  # falls back to the initial guess
-    np.testing.assert_array_equal(res.information, fallback_information(OdometryConfig(method=method)))
+    np.testing.assert_array_equal(res.information, fallback_information(GATES))
 
 
 def test_unrelated_views_are_rejected(room, pairs):
@@ -104,7 +106,7 @@ def test_unrelated_views_are_rejected(room, pairs):
     _, target, _ = pairs[0]
     other = make_frame(room, look_at(np.array([0.4, -0.3, 1.0]), np.array([0.5, 0.3, -2.0])), index=5)
     for method in ("rgbd", "icp"):
-        res = register_rgbd(other, target, np.eye(4), OdometryConfig(method=method))
+        res = register_rgbd(other, target, np.eye(4), RegistrationConfig(method=method), GATES)
         assert not res.ok and res.reason, method
 
 
@@ -113,7 +115,7 @@ def test_mismatched_cameras_are_reported_not_raised(pairs):
     K = source.K.copy()
     K[0, 0] *= 1.1
     odd = Frame(index=1, timestamp=0.0, rgb=source.rgb, depth=source.depth, K=K)
-    res = register_rgbd(odd, target, np.eye(4), OdometryConfig(method="rgbd"))
+    res = register_rgbd(odd, target, np.eye(4), RegistrationConfig(method="rgbd"), GATES)
     assert not res.ok and "same camera" in res.reason
 
 
@@ -121,25 +123,29 @@ def test_bad_arrays_are_one_line_errors(pairs):
     source, target, _ = pairs[0]
     with pytest.raises(ValueError, match="rgb must be"):
         register_rgbd(Frame(0, 0.0, source.rgb[:, :10], source.depth, source.K), target, np.eye(4),
-                      OdometryConfig())
+                      RegistrationConfig(), GATES)
     with pytest.raises(ValueError, match="rigid"):
-        register_rgbd(source, target, np.zeros((4, 4)), OdometryConfig())
+        register_rgbd(source, target, np.zeros((4, 4)), RegistrationConfig(), GATES)
 
 
 def test_config_is_validated():
     with pytest.raises(ValueError, match="depth_min"):
-        OdometryConfig(depth_min=5.0, depth_max=4.0)
+        RegistrationConfig(depth_min=5.0, depth_max=4.0)
     with pytest.raises(ValueError, match="iterations"):
-        OdometryConfig(iterations=())
+        RegistrationConfig(iterations=())
     with pytest.raises(ValueError):
-        OdometryConfig(metod="icp")  # typo -> rejected
+        RegistrationConfig(metod="icp")  # typo -> rejected
+    with pytest.raises(ValueError):
+        RegistrationConfig(min_fitness=0.5)  # a gate, not a registration setting
+    with pytest.raises(ValueError):
+        RegistrationGates(method="icp")  # a registration setting, not a gate
 
 
 def test_loop_registration_from_a_drifted_guess(pairs):
     """Registration starts from a wrong initial guess (drift) and still converges."""
     source, target, T_true = pairs[1]
     guess = T_true @ random_pose(np.random.default_rng(4), 0.04, 2.0)
-    res = register_rgbd(source, target, guess, OdometryConfig(**CASES["rgbd+polish"][0]))
+    res = register_rgbd(source, target, guess, RegistrationConfig(**CASES["rgbd+polish"][0]), GATES)
     assert res.ok
     d_t, d_r = pose_error(res.T_tgt_src, T_true)
     assert d_t < 0.002 and d_r < 0.2

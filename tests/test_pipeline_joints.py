@@ -139,6 +139,25 @@ def test_modes_are_presets_of_one_factory():
         build_config(mode="fused", overrides=["parts.seeder=magic"])
 
 
+def test_frontend_sections_reach_their_parts():
+    """The odometry's registration / gates sections configure the odometry and the keyframe link; the flat keys
+    of the old odometry section are rejected with their path."""
+    K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    bound = np.array([[-2.0, 2.0], [-2.0, 2.0], [-1.0, 3.0]])
+    cfg = build_config(mode="fused", overrides=["field.device=cpu", "odometry.registration.refine_iterations=10",
+                                                "odometry.gates.min_fitness=0.4", "odometry.retry_method=kiss",
+                                                "loop_closure.gates.max_rotation=25"])
+    odo = cfg.odometry
+    assert (odo.registration.refine_iterations, odo.gates.min_fitness, odo.retry_method) == (10, 0.4, "kiss")
+    assert (cfg.loop_closure.gates.max_rotation, cfg.loop_closure.gates.max_translation) == (25.0, 0.5)
+    p = build_parts(cfg, K, 48, 64, bound)
+    assert p.seeder.odometry.cfg == odo
+    assert (p.backend.link.registration, p.backend.link.gates) == (odo.registration, odo.gates)
+    assert p.backend.loop_closer.cfg == cfg.loop_closure
+    with pytest.raises(Exception, match="odometry.refine_iterations"):
+        build_config(overrides=["odometry.refine_iterations=10"])
+
+
 def test_field_seeders_closed_forms():
     """ESLAM's seed extrapolates (t, q) linearly (quaternion renormalised); ``se3`` repeats the last motion."""
     from lrslam.geometry import pose_to_tum
