@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "make_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
     "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
-    "propagate_covariance",
+    "propagate_covariance", "orthonormalise",
 ]
 
 
@@ -74,6 +74,17 @@ def pose_to_tum(T: np.ndarray) -> np.ndarray:
     """Poses ``(..., 4, 4)`` -> ``(..., 7)`` rows ``tx ty tz qx qy qz qw``."""
     T = np.asarray(T, dtype=np.float64)
     return np.concatenate([T[..., :3, 3], rot_to_quat(T[..., :3, :3])], axis=-1)
+
+
+def orthonormalise(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform: the rotation block projected onto SO(3) (SVD), translation kept. Chains of
+    products drift away from orthonormal (float32 kernels, ``inv`` by transposition), and a drift compounds."""
+    T = np.asarray(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def hat(w: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ from lrslam.config import StrictModel
 from lrslam.errors import InputError
 from lrslam.frontend.rgbd_view import (FrameLike, RGBDView, as_view, assess_alignment,
                                        normal_spread, valid_mask, view_problem)
-from lrslam.geometry import diagonal_information, is_valid_pose, pose_error
+from lrslam.geometry import diagonal_information, is_valid_pose, orthonormalise, pose_error
 
 __all__ = ["RegistrationConfig", "RegistrationGates", "RegistrationResult", "register_rgbd", "fallback_information",
            "frame_problem"]
@@ -193,7 +193,7 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
         return fail(f"{method} registration raised {type(e).__name__}: {_one_line(e)}")
     if not is_valid_pose(T, tol=1e-3):
         return fail(f"{method} registration returned a non-rigid or non-finite transform")
-    T = _orthonormalise(T)
+    T = orthonormalise(T)
 
     # 3. Measure and gate.
     q = assess_alignment(src, tgt, T, max_distance=cfg.max_correspondence_distance, depth_min=cfg.depth_min,
@@ -215,14 +215,6 @@ def _one_line(e: Exception) -> str:
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(e)).strip()
     text = text.splitlines()[0] if text else ""
     return re.split(r"\.(?:cpp|h):\d+: ", text)[-1]
-
-
-def _orthonormalise(T: np.ndarray) -> np.ndarray:
-    """Project the rotation block onto SO(3) (float32 kernels leave ~1e-7 drift)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------

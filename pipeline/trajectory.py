@@ -1,6 +1,10 @@
 """The one owner of every camera pose of a run: keyframe poses, and non-keyframes stored relative to their
 keyframe (so a correction of a keyframe moves the frames that hang off it).
 
+Poses are stored re-orthonormalised (:func:`lrslam.geometry.orthonormalise`): the seeds chain through this
+trajectory (last pose times the frontend's increment), and a rotation slightly off SO(3) compounds frame after
+frame through the keyframe-relative storage.
+
 Every other component -- the field's keyframe views, the loop closer, the keyframe policy, the pose graph --
 receives the poses it needs from here as arguments and hands back what it changed; nothing else keeps a pose
 copy that could silently diverge.
@@ -10,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lrslam.geometry import inv, pose_error
+from lrslam.geometry import inv, orthonormalise, pose_error
 
 __all__ = ["Trajectory"]
 
@@ -32,7 +36,7 @@ class Trajectory:
     def add(self, T_w_c: np.ndarray, is_keyframe: bool = False) -> int:
         """Append the next frame's pose; returns its frame index (0-based, in order of addition)."""
         idx = len(self._rel)
-        T_w_c = np.asarray(T_w_c, dtype=np.float64)
+        T_w_c = orthonormalise(T_w_c)
         if is_keyframe:
             self._kf[idx] = T_w_c.copy()
             self._last_kf = idx
@@ -48,7 +52,7 @@ class Trajectory:
 
     def set_pose(self, idx: int, T_w_c: np.ndarray) -> None:
         """Overwrite frame ``idx``'s pose (e.g. after mapping refined it); a keyframe moves its dependants."""
-        T_w_c = np.asarray(T_w_c, dtype=np.float64)
+        T_w_c = orthonormalise(T_w_c)
         if idx in self._kf:
             self._kf[idx] = T_w_c.copy()
         else:
@@ -68,7 +72,7 @@ class Trajectory:
                 continue
             d_t, d_r = pose_error(self._kf[k], T)
             if d_t > min_shift_m or d_r > min_shift_deg:
-                self._kf[k] = np.asarray(T, dtype=np.float64).copy()
+                self._kf[k] = orthonormalise(T)
                 moved[k] = (d_t, d_r)
         return moved
 

@@ -56,3 +56,21 @@ def test_stage_timer_accumulates():
             pass
     s = t.summary(3)
     assert s["a"]["calls"] == 3 and s["a"]["total_s"] >= 0
+
+
+def test_long_chains_through_the_trajectory_stay_rigid(rng):
+    """Seeds chain through the trajectory (last pose x increment); a keyframe every few frames used to
+    compound a tiny rotation drift (inverse by transposition of a non-orthonormal keyframe) until frame ~100
+    was rejected as not rigid."""
+    from lrslam.geometry import is_valid_pose
+
+    traj = Trajectory()
+    T = random_pose(rng, 1.0, 30.0)
+    T[:3, :3] *= 1.0 + 1e-9  # a keyframe slightly off SO(3), as float32 kernels leave them
+    traj.add(T, is_keyframe=True)
+    for i in range(1, 2000):
+        inc = random_pose(rng, 0.01, 1.0)
+        traj.add(traj.pose(-1) @ inc, is_keyframe=i % 5 == 0)
+    R = traj.pose(-1)[:3, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12
+    assert all(is_valid_pose(P) for P in traj.poses()[::50])
