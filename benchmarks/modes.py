@@ -15,13 +15,13 @@ gives ATE RMSE mean, spread (min-max) and every seed, s/frame with the first-thi
 (does the rate collapse as loops accumulate?), keyframes, loops, graph solves and re-maps. The check line per
 sequence is ``fused <= min(field, frontend)`` on the means; it prints FAIL when it fails (never hidden).
 
-``--ablation`` adds fused rows with one factor set each (``backend.factors``), to show which factors earn
-their place.
+``--ablation N`` adds fused rows with one factor set each (``backend.factors``) over N seeds, to show which
+factors earn their place.
 
 Usage::
 
     python benchmarks/modes.py [--suite synthetic|real|all] [--only tum|7scenes] [--stride N] [--seeds 3]
-                               [--frames 150] [--max-frames N] [--ablation] [--set key=value ...]
+                               [--frames 150] [--max-frames N] [--ablation SEEDS] [--set key=value ...]
                                [--threads N] [--out runs/bench_modes]
 
 Every run writes its own run folder under ``--out``; the tables are printed and saved as
@@ -42,16 +42,15 @@ ABLATION = {"fused[odometry,loop]": ["odometry", "loop"], "fused[field,loop]": [
             "fused[odometry,field]": ["odometry", "field"]}
 
 
-def _jobs(preset: str, overrides: list[str], seeds: int, ablation: bool) -> dict[str, dict]:
+def _jobs(preset: str, overrides: list[str], seeds: int, ablation: int) -> dict[str, dict]:
     """label -> resolved config dict (labels ``<variant>/s<seed>``)."""
     from lrslam.pipeline.config import build_config
 
     jobs = {"frontend": build_config(preset, overrides=overrides, mode="frontend").model_dump(mode="json")}
-    variants = {"field": ("field", []), "fused": ("fused", [])}
-    if ablation:
-        variants |= {k: ("fused", [f"backend.factors={json.dumps(v)}"]) for k, v in ABLATION.items()}
-    for name, (mode, extra) in variants.items():
-        for s in range(seeds):
+    variants = {"field": ("field", [], seeds), "fused": ("fused", [], seeds)}
+    variants |= {k: ("fused", [f"backend.factors={json.dumps(v)}"], ablation) for k, v in ABLATION.items()}
+    for name, (mode, extra, n) in variants.items():
+        for s in range(n):
             cfg = build_config(preset, overrides=overrides + extra + [f"field.seed={s}"], mode=mode)
             jobs[f"{name}/s{s}"] = cfg.model_dump(mode="json")
     return jobs
@@ -122,7 +121,8 @@ def main() -> int:
     ap.add_argument("--max-frames", type=int, default=None, help="truncate the real sequences")
     ap.add_argument("--stride", type=int, default=1, help="multiply the real sequences' frame strides")
     ap.add_argument("--only", choices=("tum", "7scenes"), default=None, help="one real sequence only")
-    ap.add_argument("--ablation", action="store_true", help="add one fused row per factor set")
+    ap.add_argument("--ablation", type=int, default=0, metavar="SEEDS",
+                    help="add one fused row per factor set, over this many seeds (0: none)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
