@@ -1,4 +1,4 @@
-"""Write a run folder's files and metrics from a frozen :class:`~lrslam.pipeline.runner.RunResult` (evaluation
+"""Write a run folder's files and metrics from a frozen :class:`~lrslam.pipeline.runner.SlamResult` (evaluation
 against ground truth happens here, not in the runner)."""
 
 from __future__ import annotations

@@ -9,7 +9,7 @@
 
 The runner's :class:`~lrslam.pipeline.trajectory.Trajectory` is the one owner of every pose: each part gets
 the poses it needs as arguments and returns what it changed. The runner never reads ground truth: the initial
-pose is passed in by the caller. :meth:`SlamRunner.finish` returns a frozen :class:`RunResult`.
+pose is passed in by the caller. :meth:`SlamRunner.finish` returns a frozen :class:`SlamResult`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from lrslam.pipeline.parts import build_parts
 from lrslam.pipeline.timing import StageTimer
 from lrslam.pipeline.trajectory import Trajectory
 
-__all__ = ["SlamRunner", "FrameRecord", "RunResult"]
+__all__ = ["SlamRunner", "FrameRecord", "SlamResult"]
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ class FrameRecord:
 
 
 @dataclass(frozen=True)
-class RunResult:
+class SlamResult:
     """Everything a run produced, for the output writers (they never reach into the runner).
 
     poses: (N, 4, 4) ``T_w_c``. keyframe_ids: frame indices. seed_poses: (N, 4, 4) per-frame seeds.
@@ -187,7 +187,7 @@ class SlamRunner:
         """(N, 4, 4) current ``T_w_c`` of every frame so far (also for a partial trajectory after a crash)."""
         return self.traj.poses()
 
-    def finish(self, mesh: bool = True, mesh_resolution: float | None = None) -> RunResult:
+    def finish(self, mesh: bool = True, mesh_resolution: float | None = None) -> SlamResult:
         """The run's frozen result (with the field's mesh when there is a field and ``mesh``)."""
         p = self.parts
         field_mesh = None
@@ -205,7 +205,7 @@ class SlamRunner:
             "frames_without_depth": sum(not r.has_depth for r in recs),
             "mapping_poses_reverted": p.field.reverted_poses if p.field is not None else 0,
         }
-        return RunResult(
+        return SlamResult(
             poses=self.traj.poses(), keyframe_ids=tuple(self.traj.keyframe_ids()), seed_poses=np.stack(self._seeds),
             frontend_poses=np.stack(self._frontend) if self._frontend else None, records=recs, counts=counts,
             mesh=field_mesh, parameters=p.field.parameter_count() if p.field is not None else None,
