@@ -129,7 +129,9 @@ class TrackerConfig(StrictModel):
 
     Acceptance and confidence (after the iterations, on one fixed set of ``check_rays`` rays): the loss at the
     seed and at the refined pose are compared on the same rays and jitter; with ``accept_if_better`` the
-    refinement is kept only when it lowers that loss by at least ``accept_margin`` (a fraction). The refined
+    refinement is kept only when its loss there is at most ``(1 + accept_tolerance)`` times the seed's (0: it
+    must not be worse; a small tolerance keeps the refinements whose gain is within the loss noise, which
+    anchor the pose to the map over many frames, and still rejects a refinement that went wrong). The refined
     pose's information (:func:`lrslam.field.tracker.pose_information`) comes from the same rays:
     ``information_rays`` is the number of rays that count as independent at saturation (neighbouring rays
     share errors) and ``information_floor_*`` a weak prior that keeps it positive definite.
@@ -151,7 +153,7 @@ class TrackerConfig(StrictModel):
     bound_margin: float = Field(1.0, ge=0)
     min_rays: int = Field(16, gt=0)
     accept_if_better: bool = False
-    accept_margin: float = Field(0.0, ge=0, lt=1)
+    accept_tolerance: float = Field(0.0, ge=0)
     check_rays: int | None = Field(None, gt=0, description="rays of the acceptance / information check "
                                   "(None = n_rays)")
     information: bool = True

@@ -34,7 +34,7 @@ from lrslam.field.poses import PoseParams
 from lrslam.field.rays import camera_directions, gather_pixels, ray_exit_depth, sample_pixels, world_rays
 from lrslam.field.render import RenderConfig, render_rays
 
-__all__ = ["TrackerConfig", "TrackResult", "track", "pose_information"]
+__all__ = ["TrackerConfig", "TrackResult", "track", "pose_information", "keep_refinement"]
 
 log = logging.getLogger(__name__)
 
@@ -146,14 +146,24 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
         l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
         l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
-        accepted = bool(np.isfinite(l_ref)) and (not cfg.accept_if_better or not np.isfinite(l_seed)
-                                                   or l_ref <= l_seed * (1.0 - cfg.accept_margin))
+        accepted = keep_refinement(l_seed, l_ref, cfg)
         T_out = T_best if accepted else T_seed
-        reason = "" if accepted else f"refinement not better than the seed ({l_ref:.4g} vs {l_seed:.4g})"
+        reason = "" if accepted else f"refinement worse than the seed ({l_ref:.4g} vs {l_seed:.4g})"
         info, n_info = None, 0
         if cfg.information:
             info, n_info = pose_information(model, batch, dirs_c, T_out, m_ref if accepted else m_seed, cfg, render)
     return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info)
+
+
+def keep_refinement(loss_seed: float, loss_refined: float, cfg: TrackerConfig) -> bool:
+    """Whether the refined pose is kept, from the two losses on the same fixed rays: never when its loss is not
+    finite; with ``accept_if_better``, only when it is at most ``(1 + accept_tolerance)`` times the seed's (a
+    seed whose loss is not finite loses to any finite refinement)."""
+    if not np.isfinite(loss_refined):
+        return False
+    if not cfg.accept_if_better or not np.isfinite(loss_seed):
+        return True
+    return bool(loss_refined <= loss_seed * (1.0 + cfg.accept_tolerance))
 
 
 def _check_rays(rgb_t: torch.Tensor, depth_t: torch.Tensor, Kt: torch.Tensor, cfg: TrackerConfig,

@@ -136,7 +136,8 @@ MODE_PRESETS: dict[str, dict[str, Any]] = {
     "frontend": {"parts": {"seeder": "odometry", "refiner": "none", "keyframer": "policy", "backend": "none"}},
     "fused": {"parts": {"seeder": "odometry", "refiner": "field", "keyframer": "policy", "backend": "graph"},
               # the odometry seed is a measurement, not a guess: keep the field's refinement only where it is better
-              "field": {"tracking": {"accept_if_better": True}}},
+              # (or at most 5 % worse on the same rays: gains within the loss noise still anchor the pose to the map)
+              "field": {"tracking": {"accept_if_better": True, "accept_tolerance": 0.05}}},
 }
 
 
