@@ -74,3 +74,16 @@ def test_long_chains_through_the_trajectory_stay_rigid(rng):
     R = traj.pose(-1)[:3, :3]
     assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12
     assert all(is_valid_pose(P) for P in traj.poses()[::50])
+
+
+@pytest.mark.parametrize("override", ["field.tracking.iters=-5", "field.mapping.n_rays=0", "field.mapping.iters=-1",
+                                      "field.render.n_stratified=0", "schedule.map_every=0", "keyframes.every_n=-1",
+                                      "backend.remap_keyframes=0", "odometry.gates.min_fitness=2",
+                                      "field.mapping.max_pose_step=0", "output.partial_every=0"])
+def test_counts_and_iterations_are_validated(override):
+    """A negative iteration count or an empty ray budget is an error naming the key, not a silent no-op."""
+    from lrslam.errors import InputError
+    from lrslam.pipeline.config import build_config
+
+    with pytest.raises(InputError, match=override.split("=")[0].replace(".", r"\.")):
+        build_config("synthetic", overrides=[override])
