@@ -60,3 +60,37 @@ def test_tum_bad_file(tmp_path):
         read_tum(tmp_path / "bad.txt")
     with pytest.raises(TrajectoryFormatError, match="not found"):
         read_tum(tmp_path / "missing.txt")
+
+
+def test_hat_adjoint_and_orthonormalise(rng):
+    w, x = rng.normal(size=3), rng.normal(size=3)
+    np.testing.assert_allclose(g.hat(w) @ x, np.cross(w, x), atol=1e-15)
+    T = g.random_pose(rng, 1.0, 90.0)
+    xi = rng.normal(size=6) * 0.1
+    # T exp(xi) T^-1 = exp(Ad_T xi)
+    np.testing.assert_allclose(T @ g.exp_se3(xi) @ g.inv(T), g.exp_se3(g.adjoint(T) @ xi), atol=1e-12)
+    bent = T.copy()
+    bent[:3, :3] *= 1.0 + 1e-6
+    fixed = g.orthonormalise(bent)
+    R = fixed[:3, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() < 1e-14 and g.pose_error(fixed, T)[1] < 1e-4
+    np.testing.assert_array_equal(fixed[:3, 3], T[:3, 3])
+
+
+def test_propagate_covariance_is_the_first_order_composition(rng):
+    """T_a_b exp(x1) T_b_c exp(x2) = T_a_c exp(Ad(T_b_c^-1) x1 + x2): check the Jacobians by finite differences,
+    then the covariance formula against them."""
+    T_ab, T_bc = g.random_pose(rng, 1.0, 40.0), g.random_pose(rng, 1.0, 40.0)
+    T_ac = T_ab @ T_bc
+    eps = 1e-6
+    J1, J2 = np.zeros((6, 6)), np.zeros((6, 6))
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = eps
+        J1[:, k] = g.log_se3(g.inv(T_ac) @ T_ab @ g.exp_se3(e) @ T_bc) / eps
+        J2[:, k] = g.log_se3(g.inv(T_ac) @ T_ab @ T_bc @ g.exp_se3(e)) / eps
+    np.testing.assert_allclose(J1, g.adjoint(g.inv(T_bc)), atol=1e-5)
+    np.testing.assert_allclose(J2, np.eye(6), atol=1e-5)
+    A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    C1, C2 = A @ A.T, B @ B.T
+    np.testing.assert_allclose(g.propagate_covariance(T_ab, C1, T_bc, C2), J1 @ C1 @ J1.T + C2, atol=1e-4)

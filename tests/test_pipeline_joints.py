@@ -181,3 +181,28 @@ def test_field_seeders_closed_forms():
     assert d_r == pytest.approx(40.0 - 2 * np.degrees(np.arctan2(2 * np.sin(np.radians(10)),
                                                                    2 * np.cos(np.radians(10)) - 1)), abs=1e-6)
     assert d_t == pytest.approx(np.linalg.norm(T1[:3, :3] @ T1[:3, 3] - T1[:3, 3]), abs=1e-9) and d_t > 0.03
+
+
+def test_keyframe_link_falls_back_to_the_chained_odometry_with_propagated_covariance():
+    """The frontend's own keyframe-to-keyframe factor: when the direct registration fails (here: no depth), the
+    chain of the frame-to-frame increments, with their covariances propagated (closed form)."""
+    from lrslam.frontend.keyframe_link import KeyframeLink
+    from lrslam.frontend.odometry import OdometryConfig, OdometryResult
+    from lrslam.geometry import propagate_covariance
+
+    cfg = OdometryConfig()
+    link = KeyframeLink(cfg.registration, cfg.gates)
+    blank = Frame(0, 0.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.float32),
+                  np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]))
+    link.start(0, blank)
+    incs = [exp_se3(np.array([0.01, 0.02, 0.0, 0.05, 0.0, 0.01])), exp_se3(np.array([0.0, -0.01, 0.03, 0.04, 0.01, 0.0]))]
+    infos = [diagonal_information(np.radians(1.0), 0.01), diagonal_information(np.radians(2.0), 0.02)]
+    for k, (T, I) in enumerate(zip(incs, infos), start=1):
+        link.accumulate(OdometryResult(k, np.eye(4), T, k - 1, I, True, 1.0, 0.0, "", T))
+    m = link.measure(2, blank)
+    assert (m.i, m.j, m.source, m.frames) == (0, 2, "chain", 2)
+    np.testing.assert_allclose(m.T_i_j, incs[0] @ incs[1], atol=1e-12)
+    cov = propagate_covariance(incs[0], np.linalg.inv(infos[0]), incs[1], np.linalg.inv(infos[1]))
+    np.testing.assert_allclose(np.linalg.inv(m.information), cov, rtol=1e-4, atol=1e-10)  # 1e-9 regulariser
+    # the chain restarts at the new keyframe
+    assert link.measure(3, blank).frames == 0
