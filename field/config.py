@@ -154,6 +154,8 @@ class TrackerConfig(StrictModel):
     min_rays: int = Field(16, gt=0)
     accept_if_better: bool = False
     accept_tolerance: float = Field(0.0, ge=0)
+    check_weights: LossWeights | None = Field(None, description="loss weights of the acceptance check (None = "
+                                              "weights; e.g. colour 0 to judge by geometry alone)")
     check_rays: int | None = Field(None, gt=0, description="rays of the acceptance / information check "
                                   "(None = n_rays)")
     information: bool = True

@@ -194,7 +194,8 @@ def _fixed_ray_loss(model: SceneModel, batch, dirs_c: torch.Tensor, T: np.ndarra
     r = render_rays(model, o, d, batch.depth, model.truncation, render, torch.Generator(), jitter=False)
     err = (batch.depth - r.depth).abs()
     mask = inside & (err < cfg.outlier_factor * err[inside].median().clamp(min=1e-6))
-    loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, mask, mask)
+    loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.check_weights or cfg.weights, mask,
+                             mask)
     return float(loss), mask
 
 
