@@ -102,13 +102,14 @@ def _save_partial(out_dir: Path, seq, runner: SlamRunner) -> None:
 
 def _after_frame(i: int, rec, frame, runner: SlamRunner, coverage: BoundCoverage | None,
                  partial: PartialTrajectory) -> None:
-    """Per-frame bookkeeping: one run.log line, the bound coverage check, the periodic partial trajectory."""
-    log.info("frame %d done: keyframe %s, refine %s%s", i, rec.keyframe, rec.refine_ok,
-             "; " + "; ".join(rec.notes) if rec.notes else "")
-    if coverage is not None and frame.valid_depth_fraction() > 0:
-        coverage.check(frame, runner.traj.pose(-1))
+    """Per-frame bookkeeping: the periodic partial trajectory (first: a kill right after the frame's log line must
+    find it saved), the bound coverage check, one run.log line."""
     if partial.due(i + 1):
         partial.save(runner.poses())
+    if coverage is not None and frame.valid_depth_fraction() > 0:
+        coverage.check(frame, runner.traj.pose(-1))
+    log.info("frame %d done: keyframe %s, refine %s%s", i, rec.keyframe, rec.refine_ok,
+             "; " + "; ".join(rec.notes) if rec.notes else "")
 
 
 def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, mode: str,
