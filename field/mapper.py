@@ -22,15 +22,15 @@ import logging
 import numpy as np
 import torch
 
-from lrslam.geometry import is_valid_pose, pose_error
-
 from lrslam.field.config import MapperConfig
+from lrslam.field.inputs import inside_bound
 from lrslam.field.keyframes import KeyframeStore, ViewPixels, select_overlapping
 from lrslam.field.losses import rendering_loss
 from lrslam.field.model import SceneModel
 from lrslam.field.poses import PoseParams
 from lrslam.field.rays import PixelBatch, camera_directions, ray_exit_depth, world_rays
 from lrslam.field.render import RenderConfig, render_rays
+from lrslam.geometry import is_valid_pose, pose_error
 
 __all__ = ["MapperConfig", "Mapper", "depth_error"]
 
@@ -141,9 +141,8 @@ class Mapper:
         if not is_valid_pose(T_new, tol=1e-3):
             return False
         d_t, d_r = pose_error(T_old, T_new)
-        b, m = self.model.bound_np, self.cfg.bound_margin
-        inside = bool(np.all(T_new[:3, 3] >= b[:, 0] - m) and np.all(T_new[:3, 3] <= b[:, 1] + m))
-        return d_t <= self.cfg.max_pose_step and d_r <= self.cfg.max_pose_step_deg and inside
+        return (d_t <= self.cfg.max_pose_step and d_r <= self.cfg.max_pose_step_deg
+                and inside_bound(T_new[:3, 3], self.model.bound_np, self.cfg.bound_margin))
 
     def _optimise(self, views: list[ViewPixels], poses_in: list[np.ndarray], optimise_pose: list[bool], iters: int,
                   lr_factor: float, views_per_iter: int | None = None) -> tuple[list[np.ndarray], dict]:
