@@ -42,12 +42,15 @@ ABLATION = {"fused[odometry,loop]": ["odometry", "loop"], "fused[field,loop]": [
             "fused[odometry,field]": ["odometry", "field"]}
 
 
-def _jobs(preset: str, overrides: list[str], seeds: int, ablation: int) -> dict[str, dict]:
-    """label -> resolved config dict (labels ``<variant>/s<seed>``)."""
+def _jobs(preset: str, overrides: list[str], seeds: int, ablation: int,
+          only: tuple[str, ...] = ("field", "frontend", "fused")) -> dict[str, dict]:
+    """label -> resolved config dict (labels ``<variant>/s<seed>``); ``only``: the three modes to run."""
     from lrslam.pipeline.config import build_config
 
-    jobs = {"frontend": build_config(preset, overrides=overrides, mode="frontend").model_dump(mode="json")}
-    variants = {"field": ("field", [], seeds), "fused": ("fused", [], seeds)}
+    jobs = {}
+    if "frontend" in only:
+        jobs["frontend"] = build_config(preset, overrides=overrides, mode="frontend").model_dump(mode="json")
+    variants = {m: (m, [], seeds) for m in ("field", "fused") if m in only}
     variants |= {k: ("fused", [f"backend.factors={json.dumps(v)}"], ablation) for k, v in ABLATION.items()}
     for name, (mode, extra, n) in variants.items():
         for s in range(n):
@@ -105,7 +108,8 @@ def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
 def _run(seq: Path, preset: str, overrides: list[str], a, out: Path) -> tuple[str, bool]:
     from lrslam.pipeline.batch import run_batch
 
-    results = run_batch([seq], _jobs(preset, overrides, a.seeds, a.ablation), out, progress=not a.quiet)
+    results = run_batch([seq], _jobs(preset, overrides, a.seeds, a.ablation, tuple(a.modes.split(","))), out,
+                        progress=not a.quiet)
     text, ok = report(f"{seq.name} ({preset}{', ' + ' '.join(overrides) if overrides else ''})",
                       next(iter(results.values())))
     print("\n" + text, flush=True)
@@ -126,15 +130,18 @@ def main() -> int:
     ap.add_argument("--ablation", type=int, default=0, metavar="SEEDS",
                     help="add one fused row per factor set, over this many seeds (0: none)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="CPU threads (torch, numba, OpenMP; default: the libraries' choice)")
+    ap.add_argument("--modes", default="field,frontend,fused", help="which of the three modes to run (the promise "
+                    "check needs all three)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_modes"))
     a = ap.parse_args()
     setup_console_logging()
     if a.threads:
-        import torch
+        from lrslam.threads import set_threads
 
-        torch.set_num_threads(a.threads)
+        set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP
     texts, oks = [], []
     if a.suite in ("synthetic", "all"):
         from lrslam.frontend.synthetic.noise import NoiseConfig

@@ -135,6 +135,20 @@ class TrackerConfig(StrictModel):
     pose's information (:func:`lrslam.field.tracker.pose_information`) comes from the same rays:
     ``information_rays`` is the number of rays that count as independent at saturation (neighbouring rays
     share errors) and ``information_floor_*`` a weak prior that keeps it positive definite.
+
+    Early stop (``stop_patience`` > 0): the iterations end once the best loss (the pose tracking returns) has
+    not dropped by more than ``stop_min_improvement`` (relative) for ``stop_patience`` iterations, after at
+    least ``min_iters``; the later iterations could only change the answer by finding a better pose, which
+    they rarely do from a good seed. 0 runs all ``iters`` (ESLAM).
+
+    ``fixed_rays``: every iteration renders the same ``n_rays`` pixels without jitter (ESLAM draws new ones each
+    iteration), so the loss is a function of the pose alone: the best pose is the best on one objective, the
+    early stop sees convergence rather than sampling noise, and the acceptance check reuses the iterations' own
+    losses (no separate check rays).
+
+    ``n_stratified``: free-space samples per ray while tracking (None: the render settings'); once the map is
+    fitted, samples in front of the surface carry ~zero rendering weight, so a pose refinement needs few of them
+    (the ``d +- 1.5 T`` surface band keeps ``render.n_importance``).
     """
 
     iters: int = Field(8, ge=0)
@@ -162,6 +176,11 @@ class TrackerConfig(StrictModel):
     information_rays: float = Field(100.0, gt=0)
     information_floor_rotation_deg: float = Field(10.0, gt=0)
     information_floor_translation: float = Field(0.2, gt=0)
+    fixed_rays: bool = False
+    stop_patience: int = Field(0, ge=0)
+    n_stratified: int | None = Field(None, gt=0)
+    stop_min_improvement: float = Field(0.01, ge=0)
+    min_iters: int = Field(0, ge=0)
 
 
 class MapperConfig(StrictModel):

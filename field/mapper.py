@@ -18,6 +18,7 @@ counted in :attr:`Mapper.reverted_poses`).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -60,12 +61,14 @@ class Mapper:
         self._Kt = torch.tensor(self.K, dtype=torch.float32, device=model.device)
 
     # ------------------------------------------------------------------------------------------ public steps
-    def initialise(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray) -> dict:
+    def initialise(self, frame_id: int, rgb: torch.Tensor, depth: torch.Tensor, T_w_c: np.ndarray,
+                   progress: Callable[[int, int], None] | None = None) -> dict:
         """Fit the field to the first frame (pose ``T_w_c`` fixed) and store it as keyframe. rgb (H, W, 3) uint8
-        and depth (H, W) metres tensors on the model's device. Returns stats (iterations, final loss terms)."""
+        and depth (H, W) metres tensors on the model's device. ``progress(done, total)`` is called after each
+        iteration. Returns stats (iterations, final loss terms)."""
         view = ViewPixels.from_images(frame_id, rgb, depth)
         _, stats = self._optimise([view], [np.asarray(T_w_c, dtype=np.float64)], [False], self.cfg.first_iters,
-                                  self.cfg.lr_first_factor)
+                                  self.cfg.lr_first_factor, progress=progress)
         self.keyframes.add(self._keyframe(frame_id, rgb, depth))
         return stats
 
@@ -145,7 +148,8 @@ class Mapper:
                 and inside_bound(T_new[:3, 3], self.model.bound_np, self.cfg.bound_margin))
 
     def _optimise(self, views: list[ViewPixels], poses_in: list[np.ndarray], optimise_pose: list[bool], iters: int,
-                  lr_factor: float, views_per_iter: int | None = None) -> tuple[list[np.ndarray], dict]:
+                  lr_factor: float, views_per_iter: int | None = None,
+                  progress: Callable[[int, int], None] | None = None) -> tuple[list[np.ndarray], dict]:
         """Adam on the field (and the flagged views' poses). ``poses_in``: (4, 4) ``T_w_c`` per view. Returns
         (the poses after optimisation, copies, unflagged ones unchanged; stats)."""
         model, cfg, dev = self.model, self.cfg, self.model.device
@@ -194,6 +198,8 @@ class Mapper:
             loss.backward()
             opt.step()
             done, last_loss, last_terms = it + 1, loss.detach(), terms
+            if progress is not None:
+                progress(it + 1, iters)
         if done == 0 and iters > 0:
             log.warning("mapping: no usable rays (valid depth inside the scene bound) in %d iterations", iters)
         if pose is not None:

@@ -57,15 +57,17 @@ class FieldSLAM:
         self.initialised = False
 
     # ------------------------------------------------------------------------------------------ SLAM steps
-    def initialise(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray) -> dict:
+    def initialise(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
+                   progress=None) -> dict:
         """First frame: fit the field (``mapping.first_iters`` iterations) with the pose fixed; it becomes
-        keyframe ``frame_id`` (never moved by mapping). Returns stats (iterations, loss terms).
+        keyframe ``frame_id`` (never moved by mapping). ``progress(done, total)``: called per iteration.
+        Returns stats (iterations, loss terms).
         Raises InputError when the frame has no valid depth or the pose is invalid."""
         T = self._pose(T_w_c)
         rgb_t, depth_t = image_tensors(rgb, depth, self.height, self.width, self.device)
         if not bool((depth_t > 0).any()):
             raise InputError(f"frame {frame_id}: the first frame has no valid depth; cannot initialise the field")
-        stats = self.mapper.initialise(frame_id, rgb_t, depth_t, T)
+        stats = self.mapper.initialise(frame_id, rgb_t, depth_t, T, progress)
         self.initialised = True
         return stats
 

@@ -48,8 +48,8 @@ class TrackResult:
     loss during the iterations (NaN when never evaluated). check_seed / check_refined: the losses of the seed and
     the refined pose on the same fixed rays (NaN when not checked). accepted: the refinement was kept.
     information: (6, 6) information of ``T_w_c`` (right perturbation, ``[rotation, translation]``) given the
-    field, or None. n_check_rays: rays behind it. iters: iterations run. reason: why tracking failed or the
-    refinement was not kept ("" otherwise)."""
+    field, or None. n_check_rays: rays behind it. iters: iterations run. best_iter: the iteration whose pose was
+    the best (0 = the seed). reason: why tracking failed or the refinement was not kept ("" otherwise)."""
 
     T_w_c: np.ndarray
     ok: bool
@@ -62,6 +62,7 @@ class TrackResult:
     check_refined: float = float("nan")
     information: np.ndarray | None = None
     n_check_rays: int = 0
+    best_iter: int = 0
 
 
 def _fail(T_seed: np.ndarray, reason: str, loss_first: float = float("nan"), iters: int = 0) -> TrackResult:
@@ -84,6 +85,8 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         InputError: images of the wrong shape/dtype (a programming error, not a bad frame).
     """
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
+    if cfg.n_stratified is not None:
+        render = render.model_copy(update={"n_stratified": cfg.n_stratified})
     T_seed = np.asarray(T_w_c_init, dtype=np.float64)
     if not is_valid_pose(T_seed):
         return _fail(np.eye(4) if T_seed.shape != (4, 4) else T_seed, "seed pose is not a finite rigid transform")
@@ -101,21 +104,30 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
                             {"params": [pose.translation], "lr": cfg.lr_trans}], betas=cfg.adam_betas)
     Kt = torch.tensor(K, dtype=torch.float32, device=dev)
     loss_first, loss_best, T_best, done = float("nan"), float("inf"), T_seed, 0
+    best_iter, since_gain, loss_ref = 0, 0, float("inf")   # early stop: iterations since the best loss dropped
+
+    fixed = _check_rays(rgb_t, depth_t, Kt, cfg, gen, cfg.n_rays) if cfg.fixed_rays else None
 
     with model.frozen():
         for it in range(cfg.iters):
             _decay(opt, (cfg.lr_rot, cfg.lr_trans), cfg.lr_final_factor, it, cfg.iters)
-            # 2. Pixels with valid depth, rays from the current pose, surface inside the bound.
-            rows, cols = sample_pixels(cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w, dev)
-            batch = gather_pixels(rgb_t, depth_t, rows, cols, 0)
-            batch = batch.select(batch.depth > 0)
-            o, d = world_rays(camera_directions(batch.u, batch.v, Kt), pose.matrices())
+            # 2. Pixels with valid depth (new ones each iteration, or the fixed set), rays from the current pose,
+            #    surface inside the bound.
+            if fixed is None:
+                rows, cols = sample_pixels(cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w, dev)
+                batch = gather_pixels(rgb_t, depth_t, rows, cols, 0)
+                batch = batch.select(batch.depth > 0)
+                dirs_c = camera_directions(batch.u, batch.v, Kt)
+            else:
+                batch, dirs_c = fixed
+            o, d = world_rays(dirs_c, pose.matrices())
             inside = ray_exit_depth(o, d, model.bound) >= batch.depth
             if int(inside.sum()) < cfg.min_rays:
                 continue
             o, d, batch = o[inside], d[inside], batch.select(inside)
             # 3. Render, reject outlier rays, loss.
-            r = render_rays(model, o, d, batch.depth, model.truncation, render, gen)
+            r = render_rays(model, o, d, batch.depth, model.truncation, render, gen, jitter=None if fixed is None
+                            else False)
             err = (batch.depth - r.depth.detach()).abs()
             inlier = err < cfg.outlier_factor * err.median().clamp(min=1e-6)
             loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, inlier, inlier)
@@ -126,7 +138,12 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             if np.isnan(loss_first):
                 loss_first = value
             if value < loss_best:  # the loss belongs to the pose before this step
-                loss_best, T_best = value, pose.numpy()[0]
+                loss_best, T_best, best_iter = value, pose.numpy()[0], it
+            since_gain += 1
+            if value < loss_ref * (1.0 - cfg.stop_min_improvement):
+                loss_ref, since_gain = value, 0
+            if cfg.stop_patience and since_gain >= cfg.stop_patience and done >= cfg.min_iters:
+                break
             # 4. Step.
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -142,17 +159,27 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         return _fail(T_seed, "refined camera centre left the scene bound", loss_first, done)
 
     # 6. Paired check on fixed rays: is the refinement better than the seed? How well is the pose determined?
+    #    With ``fixed_rays`` the iterations already ran on one fixed set: the seed's loss is the first
+    #    iteration's and the refinement's the best one, on the same rays (unless the check has its own weights).
     with model.frozen():
-        batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
-        l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
-        l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
-        accepted = keep_refinement(l_seed, l_ref, cfg)
+        batch, dirs_c = fixed if fixed is not None else _check_rays(rgb_t, depth_t, Kt, cfg, gen)
+        if fixed is not None and cfg.check_weights is None and best_iter < done:
+            l_seed, l_ref = loss_first, loss_best
+            accepted = keep_refinement(l_seed, l_ref, cfg)
+            _, mask = _fixed_ray_loss(model, batch, dirs_c, T_best if accepted else T_seed, cfg, render) \
+                if cfg.information else (None, None)
+            m_ref = m_seed = mask
+        else:
+            l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
+            l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
+            accepted = keep_refinement(l_seed, l_ref, cfg)
         T_out = T_best if accepted else T_seed
         reason = "" if accepted else f"refinement worse than the seed ({l_ref:.4g} vs {l_seed:.4g})"
         info, n_info = None, 0
         if cfg.information:
             info, n_info = pose_information(model, batch, dirs_c, T_out, m_ref if accepted else m_seed, cfg, render)
-    return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info)
+    return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info,
+                       best_iter)
 
 
 def keep_refinement(loss_seed: float, loss_refined: float, cfg: TrackerConfig) -> bool:
@@ -167,10 +194,11 @@ def keep_refinement(loss_seed: float, loss_refined: float, cfg: TrackerConfig) -
 
 
 def _check_rays(rgb_t: torch.Tensor, depth_t: torch.Tensor, Kt: torch.Tensor, cfg: TrackerConfig,
-                gen: torch.Generator):
-    """One fixed set of pixels with valid depth -> (PixelBatch, camera directions (N, 3))."""
+                gen: torch.Generator, n: int | None = None):
+    """One fixed set of ``n`` (default ``check_rays or n_rays``) pixels with valid depth -> (PixelBatch, camera
+    directions (N, 3))."""
     h, w = depth_t.shape
-    rows, cols = sample_pixels(cfg.check_rays or cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w,
+    rows, cols = sample_pixels(n or cfg.check_rays or cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w,
                                depth_t.device)
     batch = gather_pixels(rgb_t, depth_t, rows, cols, 0)
     batch = batch.select(batch.depth > 0)

@@ -11,6 +11,7 @@ import typer
 from lrslam.errors import InputError
 from lrslam.jsonio import dumps
 from lrslam.logs import setup_console_logging
+from lrslam.threads import set_threads
 
 __all__ = ["run", "params", "DEMO_SYNTH"]
 
@@ -74,17 +75,20 @@ def run(
     partial_every: Optional[int] = typer.Option(None, "--partial-every", min=1, help="Save trajectory_partial.txt "
                                                 "every N frames during the run (= --set output.partial_every=N)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads for torch, numba and "
+                                          "OpenMP (default: the libraries' own choice, all cores)."),
 ) -> None:
     """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT.
 
     Exit code 0: ok; 2: bad input; 3: the run finished but is degraded (see metrics.json "degraded_reasons").
     ``--set bound=auto`` estimates the scene bound with a fast odometry pre-pass over the sequence.
     """
-    from lrslam.pipeline.config_source import load_run_config
+    from lrslam.pipeline.config_source import default_preset, load_run_config
     from lrslam.pipeline.run import run_sequence
     from lrslam.pipeline.run_folder import check_run_folder
 
     setup_console_logging()
+    set_threads(threads)
     if demo:
         config = config or "synthetic"
     ov = list(overrides or [])
@@ -92,6 +96,9 @@ def run(
         ov.append(f"dataset.options.max_frames={max_frames}")
     if partial_every is not None:
         ov.append(f"output.partial_every={partial_every}")
+    if config is None and path is not None:
+        config, why = default_preset(path)
+        typer.echo(why)
     loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
     check_run_folder(out, overwrite)
     if demo:

@@ -2,7 +2,8 @@
 
 A run config is built from (later wins): component defaults (the paper's settings) <- the mode's preset
 (:data:`MODE_PRESETS`: which parts the runner is built from, and the settings that go with them) <- a dataset
-preset (``configs/dataset/<name>.yaml``) <- a representation preset (``configs/representation/<name>.yaml``,
+preset (``configs/dataset/<name>.yaml``) <- that preset's settings for the mode (its ``modes: {<mode>: ...}``
+section, e.g. fewer tracking iterations where the odometry seeds) <- a representation preset (``configs/representation/<name>.yaml``,
 merged into ``field.model``) <- a user YAML file <- ``key.sub=value`` overrides. Every section is typed by its
 component's own model (validated once, here); the resolved config is a plain dump, saved with every run
 (``config.yaml``), and reproduces it.
@@ -214,17 +215,21 @@ def build_config(preset: str | None = None, representation: str | None = None, c
     ``top_level`` sets root keys directly (e.g. ``mode="field"``); None values are ignored.
     Raises InputError with a one-line message on an unknown preset, key or bad value.
     """
-    data: dict[str, Any] = {}
-    if preset:
-        data = deep_update(data, _load_preset("dataset", preset))
+    base: dict[str, Any] = _load_preset("dataset", preset) if preset else {}
+    per_mode = base.pop("modes", None) or {}
+    later: dict[str, Any] = {}
     if representation:
-        data = deep_update(data, {"field": {"model": _load_preset("representation", representation)}})
+        later = deep_update(later, {"field": {"model": _load_preset("representation", representation)}})
     if config_file:
-        data = deep_update(data, read_user_yaml(config_file))
+        later = deep_update(later, read_user_yaml(config_file))
     for item in overrides or []:
-        data = deep_update(data, _parse_override(item))
-    data = deep_update(data, {k: v for k, v in top_level.items() if v is not None})
-    mode = data.get("mode", "fused")
+        later = deep_update(later, _parse_override(item))
+    later = deep_update(later, {k: v for k, v in top_level.items() if v is not None})
+    mode = later.get("mode", base.get("mode", "fused"))
+    unknown = sorted(set(per_mode) - set(MODE_PRESETS))
+    if unknown:
+        raise InputError(f"dataset preset {preset!r}: unknown mode(s) under 'modes': {', '.join(unknown)}")
+    data = deep_update(deep_update(base, per_mode.get(mode) or {}), later)
     if mode in MODE_PRESETS:  # an unknown mode is reported by the validation below
         data = deep_update(MODE_PRESETS[mode], data)
     from pydantic import ValidationError

@@ -10,7 +10,36 @@ from dataclasses import dataclass, field
 from lrslam.errors import InputError
 from lrslam.pipeline.config import RunConfig, build_config, is_config_file
 
-__all__ = ["LoadedConfig", "load_run_config"]
+__all__ = ["LoadedConfig", "load_run_config", "default_preset"]
+
+# Reader name -> packaged dataset preset (paper / GPU-sized); ``<name>-cpu`` is its CPU-sized variant.
+_READER_PRESET = {"tum": "tum", "7scenes": "7scenes", "replica": "replica", "scannet": "scannet",
+                  "synthetic": "synthetic"}
+
+
+def default_preset(path, cuda: bool | None = None) -> tuple[str | None, str]:
+    """The dataset preset for a sequence folder when no ``--config`` is given: the CPU-sized ``<dataset>-cpu``
+    preset on a machine without CUDA (when one exists), the paper's settings with CUDA. Returns (preset or None,
+    a one-line reason). Never raises for an unreadable folder (the run reports that itself)."""
+    from lrslam.frontend.datasets import detect_layout
+    from lrslam.pipeline.config import list_presets
+
+    try:
+        reader = detect_layout(path)
+    except (InputError, OSError):
+        return None, "no --config and the dataset layout is not recognised: built-in defaults"
+    base = _READER_PRESET.get(reader)
+    if base is None:
+        return None, f"no --config and no preset for a {reader} sequence: built-in defaults"
+    if cuda is None:
+        import torch
+
+        cuda = torch.cuda.is_available()
+    cpu = f"{base}-cpu"
+    if not cuda and cpu in list_presets("dataset"):
+        return cpu, f"preset {cpu} (no --config; {reader} sequence on a CPU: the CPU-sized settings)"
+    where = "CUDA" if cuda else "a CPU (no CPU-sized variant exists)"
+    return base, f"preset {base} (no --config; {reader} sequence on {where}: the paper's settings)"
 
 
 @dataclass(frozen=True)

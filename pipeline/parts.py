@@ -43,13 +43,15 @@ class Seed:
 @dataclass(frozen=True)
 class Refinement:
     """The refined pose ``T_w_c`` (4, 4) (the seed when not ``ok`` or not ``accepted``); ``information`` (6, 6)
-    of it given the field (None without one); ``ok`` None when there is no refiner."""
+    of it given the field (None without one); ``ok`` None when there is no refiner; ``iters`` tracking
+    iterations run."""
 
     T_w_c: np.ndarray
     ok: bool | None = None
     accepted: bool = False
     information: np.ndarray | None = None
     note: str = ""
+    iters: int = 0
 
 
 @dataclass(frozen=True)
@@ -134,8 +136,9 @@ class FieldRefiner:
     def refine(self, frame: Frame, seed: Seed) -> Refinement:
         res = self.field.track(frame.rgb, frame.depth, seed.T_w_c)
         if not res.ok:
-            return Refinement(seed.T_w_c, False, False, None, f"field tracking fell back to the seed: {res.reason}")
-        return Refinement(res.T_w_c, True, res.accepted, res.information, res.reason)
+            return Refinement(seed.T_w_c, False, False, None, f"field tracking fell back to the seed: {res.reason}",
+                              res.iters)
+        return Refinement(res.T_w_c, True, res.accepted, res.information, res.reason, res.iters)
 
 
 # -------------------------------------------------------------------------------------------------- keyframers
@@ -177,8 +180,8 @@ class FieldMapper:
         self.field = field
         self.map_every = map_every
 
-    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
-        self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0)
+    def start(self, frame: Frame, T_w_c0: np.ndarray, progress=None) -> None:
+        self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0, progress)
 
     def due(self, frame: Frame, is_keyframe: bool) -> bool:
         return is_keyframe or frame.index % self.map_every == 0

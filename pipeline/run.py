@@ -112,6 +112,18 @@ def _after_frame(i: int, rec, frame, runner: SlamRunner, coverage: BoundCoverage
              "; " + "; ".join(rec.notes) if rec.notes else "")
 
 
+def _start(runner: SlamRunner, first, T0: np.ndarray, cfg: RunConfig, progress: bool) -> None:
+    """The first frame, with a progress bar over the field's first-frame fit (minutes on a CPU at the paper's
+    settings: never silent)."""
+    from tqdm import tqdm
+
+    if not progress or cfg.parts.refiner != "field":
+        runner.start(first, T0)
+        return
+    with tqdm(total=cfg.field.mapping.first_iters, desc="first-frame fit", unit="it", leave=False) as bar:
+        runner.start(first, T0, lambda done, total: bar.update(done - bar.n))
+
+
 def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, mode: str,
             coverage: BoundCoverage | None) -> dict:
     """Add ground-truth presence, bound coverage and the sanity status to the metrics; write ``metrics.json``
@@ -163,7 +175,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
         timer = StageTimer()
         t_start = time.perf_counter()
         runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
-        runner.start(first, T0)
+        _start(runner, first, T0, cfg, progress)
         frame_seconds = [time.perf_counter() - t_start]
         coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
         partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)

@@ -39,6 +39,7 @@ class FrameRecord:
     seed_ok: bool = True
     refine_ok: bool | None = None
     refine_accepted: bool = False
+    refine_iters: int = 0
     has_depth: bool = True
     keyframe: bool = False
     loops: int = 0
@@ -95,8 +96,9 @@ class SlamRunner:
         return self.parts.backend.n_loops if self.parts.backend is not None else 0
 
     # ------------------------------------------------------------------------------------------------ frames
-    def start(self, frame: Frame, T_w_c0: np.ndarray) -> FrameRecord:
-        """First frame: fixes the world frame at ``T_w_c0`` and initialises every part."""
+    def start(self, frame: Frame, T_w_c0: np.ndarray, progress=None) -> FrameRecord:
+        """First frame: fixes the world frame at ``T_w_c0`` and initialises every part. ``progress(done, total)``
+        is called per iteration of the field's first-frame fit (the longest step of a run)."""
         p = self.parts
         if frame.valid_depth_fraction() == 0:
             raise InputError(f"frame {frame.index}: the first frame has no valid depth; cannot initialise the map")
@@ -105,7 +107,7 @@ class SlamRunner:
         p.keyframer.start(frame)
         if p.mapper is not None:
             with self.timer("map"):
-                p.mapper.start(frame, T0)
+                p.mapper.start(frame, T0, progress)
         if p.backend is not None:
             with self.timer("graph"):
                 p.backend.start(frame, T0)
@@ -135,6 +137,7 @@ class SlamRunner:
             with self.timer("refine"):
                 ref = p.refiner.refine(frame, seed)
             rec.refine_ok, rec.refine_accepted, information = ref.ok, ref.accepted, ref.information
+            rec.refine_iters = ref.iters
             T = ref.T_w_c
             if ref.note:
                 rec.notes.append(ref.note)
@@ -204,6 +207,7 @@ class SlamRunner:
             "refinements_rejected": sum(r.refine_ok is True and not r.refine_accepted for r in recs),
             "frames_without_depth": sum(not r.has_depth for r in recs),
             "mapping_poses_reverted": p.field.reverted_poses if p.field is not None else 0,
+            "refine_iters_mean": float(np.mean([r.refine_iters for r in recs if r.refine_ok is not None] or [0])),
         }
         return SlamResult(
             poses=self.traj.poses(), keyframe_ids=tuple(self.traj.keyframe_ids()), seed_poses=np.stack(self._seeds),

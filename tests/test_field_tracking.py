@@ -183,3 +183,73 @@ def test_refinement_is_kept_only_when_not_worse_than_the_seed():
     assert keep_refinement(1.0, 5.0, always)
     assert not keep_refinement(1.0, float("nan"), always) and not keep_refinement(1.0, float("inf"), tolerant)
     assert keep_refinement(float("nan"), 2.0, strict)
+
+
+def test_early_stop_ends_when_the_best_loss_stops_dropping(fitted, scene_frames):
+    """``stop_patience``: the iterations end once the best loss has not dropped by more than
+    ``stop_min_improvement`` for that many iterations (after ``min_iters``); 0 runs every iteration."""
+    poses, frames = scene_frames
+    base = dict(iters=40, n_rays=300, ignore_edge_h=4, ignore_edge_w=4)
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(**base)})
+    assert fitted.track(*frames[6], poses[6]).iters == 40
+    # a huge threshold: no iteration counts as a gain, so it stops right after min_iters / patience
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(
+        **base, stop_patience=3, stop_min_improvement=0.99, min_iters=5)})
+    res = fitted.track(*frames[6], poses[6])
+    assert res.ok and res.iters == 5, res.iters
+    # a real criterion from a perturbed seed: stops early and still improves on the seed's loss
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(
+        **base, lr_rot=0.005, lr_trans=0.01, stop_patience=4, stop_min_improvement=0.02)})
+    seed = poses[6].copy()
+    seed[:3, 3] += [0.02, -0.01, 0.01]
+    res = fitted.track(*frames[6], seed)
+    assert res.ok and 4 <= res.iters < 40 and res.loss_best < res.loss_first
+    assert res.best_iter < res.iters
+
+
+def test_tracking_sample_count_override(fitted, scene_frames, monkeypatch):
+    """``tracking.n_stratified`` replaces the render settings' free-space samples for tracking only."""
+    import lrslam.field.tracker as tr
+
+    seen = []
+    real = tr.render_rays
+
+    def spy(model, o, d, depth, trunc, render, gen, jitter=None):
+        seen.append(render.n_stratified)
+        return real(model, o, d, depth, trunc, render, gen, jitter)
+
+    monkeypatch.setattr(tr, "render_rays", spy)
+    poses, frames = scene_frames
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(
+        iters=2, n_rays=200, ignore_edge_h=4, ignore_edge_w=4, n_stratified=5)})
+    fitted.track(*frames[6], poses[6])
+    assert seen and set(seen) == {5}
+    seen.clear()
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(iters=2, n_rays=200, ignore_edge_h=4,
+                                                                         ignore_edge_w=4)})
+    fitted.track(*frames[6], poses[6])
+    assert set(seen) == {fitted.cfg.render.n_stratified}
+
+
+def test_fixed_ray_tracking_reuses_its_losses_for_the_check(fitted, scene_frames):
+    """``fixed_rays``: one pixel set, no jitter: the loss is a function of the pose, the acceptance check
+    is the first (seed) and best iteration's losses on those rays, and a perturbed seed is pulled back."""
+    poses, frames = scene_frames
+    fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(
+        iters=30, n_rays=400, lr_rot=0.005, lr_trans=0.01, ignore_edge_h=4, ignore_edge_w=4, fixed_rays=True,
+        accept_if_better=True)})
+    seed = poses[6].copy()
+    seed[:3, 3] += [0.02, -0.01, 0.01]
+    res = fitted.track(*frames[6], seed)
+    assert res.ok and res.accepted
+    assert res.check_seed == res.loss_first and res.check_refined == res.loss_best < res.loss_first
+    dt0, _ = g.pose_error(seed, poses[6])
+    dt, _ = g.pose_error(res.T_w_c, poses[6])
+    assert dt < 0.5 * dt0, (dt, dt0)
+    assert res.information is not None and np.linalg.eigvalsh(res.information)[0] > 0
+    # same seed, same generator state -> the same answer (no sampling noise left in the objective)
+    fitted.gen.manual_seed(5)
+    a = fitted.track(*frames[6], seed)
+    fitted.gen.manual_seed(5)
+    b = fitted.track(*frames[6], seed)
+    np.testing.assert_array_equal(a.T_w_c, b.T_w_c)

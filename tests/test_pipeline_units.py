@@ -87,3 +87,76 @@ def test_counts_and_iterations_are_validated(override):
 
     with pytest.raises(InputError, match=override.split("=")[0].replace(".", r"\.")):
         build_config("synthetic", overrides=[override])
+
+
+def test_tsdf_grows_past_its_initial_block_count(tmp_path):
+    """The TSDF starts small (memory follows the surface) and its hash map grows: a start of 20 blocks gives the
+    same mesh as a start big enough for everything."""
+    from lrslam.frontend.datasets import open_sequence
+    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.pipeline.tsdf import tsdf_mesh
+
+    seq = open_sequence(generate(tmp_path / "s", scene="room", trajectory="circle", n_frames=4, width=160, height=120,
+                                 show_progress=False))
+    poses = seq.gt_poses()
+    small = tsdf_mesh(iter(seq), poses, voxel=0.04, block_count=20)
+    big = tsdf_mesh(iter(seq), poses, voxel=0.04, block_count=20000)
+    assert len(big.faces) > 1000
+    assert len(small.faces) == len(big.faces)
+
+
+def test_set_threads_sets_torch_and_the_environment(monkeypatch):
+    import torch
+
+    from lrslam.errors import InputError
+    from lrslam.threads import set_threads
+
+    old = torch.get_num_threads()
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    try:
+        assert set_threads(None) is None and "OMP_NUM_THREADS" not in __import__("os").environ
+        assert set_threads(1) == 1 and torch.get_num_threads() == 1
+        assert __import__("os").environ["OMP_NUM_THREADS"] == "1"
+        with pytest.raises(InputError, match="--threads"):
+            set_threads(0)
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_default_preset_follows_the_dataset_and_the_device(tmp_path):
+    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.pipeline.config_source import default_preset
+
+    seq = generate(tmp_path / "s", scene="room", trajectory="circle", n_frames=2, width=80, height=60,
+                   show_progress=False)
+    assert default_preset(seq, cuda=False)[0] == "synthetic"    # no synthetic-cpu: the preset is CPU-sized already
+    tum = tmp_path / "tum"
+    (tum / "rgb").mkdir(parents=True)
+    (tum / "depth").mkdir()
+    for name in ("rgb.txt", "depth.txt"):
+        (tum / name).write_text("# empty\n")
+    preset, why = default_preset(tum, cuda=False)
+    assert preset == "tum-cpu" and "CPU" in why
+    assert default_preset(tum, cuda=True)[0] == "tum"
+    assert default_preset(tmp_path / "nothing-here", cuda=False)[0] is None
+
+
+def test_dataset_preset_settings_per_mode(tmp_path):
+    """A dataset preset's ``modes: {<mode>: ...}`` applies to that mode only, over the preset's own settings
+    and under user overrides; an unknown mode name there is a one-line error naming the preset."""
+    from lrslam.errors import InputError
+    from lrslam.pipeline.config import build_config
+
+    f = tmp_path / "p.yaml"
+    f.write_text("field: {tracking: {iters: 30}}\nmodes:\n  fused: {field: {tracking: {iters: 7, fixed_rays: true}}}\n")
+    assert build_config(str(f), mode="fused").field.tracking.iters == 7
+    assert build_config(str(f), mode="fused").field.tracking.fixed_rays
+    assert build_config(str(f), mode="field").field.tracking.iters == 30
+    assert not build_config(str(f), mode="field").field.tracking.fixed_rays
+    assert build_config(str(f), mode="fused", overrides=["field.tracking.iters=3"]).field.tracking.iters == 3
+    assert "modes" not in build_config(str(f), mode="fused").resolved()
+    assert build_config("tum-cpu", mode="fused").field.tracking.iters < build_config("tum-cpu", mode="field"
+                                                                                     ).field.tracking.iters
+    f.write_text("modes:\n  fast: {field: {tracking: {iters: 7}}}\n")
+    with pytest.raises(InputError, match="unknown mode"):
+        build_config(str(f), mode="fused")
