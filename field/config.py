@@ -142,9 +142,8 @@ class TrackerConfig(StrictModel):
     they rarely do from a good seed. 0 runs all ``iters`` (ESLAM).
 
     ``fixed_rays``: every iteration renders the same ``n_rays`` pixels without jitter (ESLAM draws new ones each
-    iteration), so the loss is a function of the pose alone: the best pose is the best on one objective, the
-    early stop sees convergence rather than sampling noise, and the acceptance check reuses the iterations' own
-    losses (no separate check rays).
+    iteration), so the loss is a function of the pose alone: the best pose is the best on one objective and the
+    early stop sees convergence rather than sampling noise (the acceptance check keeps its own rays).
 
     ``n_stratified``: free-space samples per ray while tracking (None: the render settings'); once the map is
     fitted, samples in front of the surface carry ~zero rendering weight, so a pose refinement needs few of them

@@ -24,7 +24,7 @@ from lrslam.field.keyframes import KeyframeStore
 from lrslam.field.mapper import Mapper
 from lrslam.field.mesh import extract_mesh
 from lrslam.field.model import SceneModel
-from lrslam.field.tracker import TrackResult, track
+from lrslam.field.tracker import TrackResult, pose_losses, track
 
 __all__ = ["FieldSLAMConfig", "FieldSLAM"]
 
@@ -75,6 +75,12 @@ class FieldSLAM:
         """Refine a seed pose against the frozen field (never raises for a bad frame: ``ok`` False, seed kept)."""
         self._require_init()
         return track(self.model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, self.gen)
+
+    def pose_losses(self, rgb: np.ndarray, depth: np.ndarray, poses: list[np.ndarray]) -> list[float]:
+        """The frame's tracking loss at each candidate pose ``T_w_c`` on the same rays (lower: the map agrees
+        better); see :func:`lrslam.field.tracker.pose_losses`."""
+        self._require_init()
+        return pose_losses(self.model, rgb, depth, self.K, poses, self.cfg.tracking, self.cfg.render, self.gen)
 
     def map(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
             keyframe_poses: dict[int, np.ndarray], add_keyframe: bool) -> dict[int, np.ndarray]:

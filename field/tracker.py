@@ -34,7 +34,7 @@ from lrslam.field.poses import PoseParams
 from lrslam.field.rays import camera_directions, gather_pixels, ray_exit_depth, sample_pixels, world_rays
 from lrslam.field.render import RenderConfig, render_rays
 
-__all__ = ["TrackerConfig", "TrackResult", "track", "pose_information", "keep_refinement"]
+__all__ = ["TrackerConfig", "TrackResult", "track", "pose_information", "keep_refinement", "pose_losses"]
 
 log = logging.getLogger(__name__)
 
@@ -158,21 +158,14 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
     if not inside_bound(T_best[:3, 3], model.bound_np, cfg.bound_margin):
         return _fail(T_seed, "refined camera centre left the scene bound", loss_first, done)
 
-    # 6. Paired check on fixed rays: is the refinement better than the seed? How well is the pose determined?
-    #    With ``fixed_rays`` the iterations already ran on one fixed set: the seed's loss is the first
-    #    iteration's and the refinement's the best one, on the same rays (unless the check has its own weights).
+    # 6. Paired check on fixed rays the iterations did not fit (also with ``fixed_rays``: the best loss on the
+    #    optimised rays is never above the seed's, so it could not reject): is the refinement better than the
+    #    seed? How well is the pose determined?
     with model.frozen():
-        batch, dirs_c = fixed if fixed is not None else _check_rays(rgb_t, depth_t, Kt, cfg, gen)
-        if fixed is not None and cfg.check_weights is None and best_iter < done:
-            l_seed, l_ref = loss_first, loss_best
-            accepted = keep_refinement(l_seed, l_ref, cfg)
-            _, mask = _fixed_ray_loss(model, batch, dirs_c, T_best if accepted else T_seed, cfg, render) \
-                if cfg.information else (None, None)
-            m_ref = m_seed = mask
-        else:
-            l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
-            l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
-            accepted = keep_refinement(l_seed, l_ref, cfg)
+        batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
+        l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
+        l_ref, m_ref = _fixed_ray_loss(model, batch, dirs_c, T_best, cfg, render)
+        accepted = keep_refinement(l_seed, l_ref, cfg)
         T_out = T_best if accepted else T_seed
         reason = "" if accepted else f"refinement worse than the seed ({l_ref:.4g} vs {l_seed:.4g})"
         info, n_info = None, 0
@@ -180,6 +173,26 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             info, n_info = pose_information(model, batch, dirs_c, T_out, m_ref if accepted else m_seed, cfg, render)
     return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info,
                        best_iter)
+
+
+def pose_losses(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, poses: list[np.ndarray],
+                cfg: TrackerConfig = TrackerConfig(), render: RenderConfig = RenderConfig(),
+                generator: torch.Generator | None = None) -> list[float]:
+    """The tracking loss of one frame (rgb (H, W, 3) uint8, depth (H, W) metres) at each candidate pose
+    ``poses`` ((4, 4) ``T_w_c`` each), on the same fixed rays without jitter (``check_rays`` of them): which
+    pose does the frozen field support? NaN for a pose with too few usable rays."""
+    gen = generator if generator is not None else torch.Generator().manual_seed(0)
+    if cfg.n_stratified is not None:
+        render = render.model_copy(update={"n_stratified": cfg.n_stratified})
+    h, w = np.asarray(depth).shape[:2]
+    rgb_t, depth_t = image_tensors(rgb, depth, h, w, model.device)
+    Kt = torch.tensor(K, dtype=torch.float32, device=model.device)
+    with model.frozen():
+        batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
+        if len(dirs_c) < cfg.min_rays:
+            return [float("nan")] * len(poses)
+        return [_fixed_ray_loss(model, batch, dirs_c, np.asarray(T, dtype=np.float64), cfg, render)[0]
+                for T in poses]
 
 
 def keep_refinement(loss_seed: float, loss_refined: float, cfg: TrackerConfig) -> bool:

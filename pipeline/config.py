@@ -74,7 +74,12 @@ class BackendConfig(StrictModel):
     consistent re-observations only add their factor), ``every_keyframe`` at every keyframe.
     write_min_shift_*: a keyframe is overwritten only where the graph moved it more than this.
     remap_min_shift_m / remap_keyframes: a solve that moved some keyframe more than this re-maps the field over
-    (at most) that many most-moved keyframes (``field.mapping.remap_iters`` iterations)."""
+    (at most) that many most-moved keyframes (``field.mapping.remap_iters`` iterations).
+    loop_field_check: with a field, a loop that would correct the trajectory is kept only when the map agrees:
+    the new keyframe's tracking loss at the pose the loop implies (``T_w_i T_i_j``) is at most
+    ``(1 + loop_field_tolerance)`` times its loss at the current pose, on the same rays; otherwise the loop is
+    dropped (logged and counted): the frontend's registration of two views is less precise than tracking
+    against the whole map, and a loop the map disputes would pull an accurate trajectory toward its error."""
 
     factors: list[Literal["odometry", "field", "loop"]] = ["odometry", "field", "loop"]
     optimise: Literal["on_loop", "every_keyframe"] = "on_loop"
@@ -84,6 +89,8 @@ class BackendConfig(StrictModel):
     write_min_shift_deg: float = Field(0.01, ge=0)
     remap_min_shift_m: float = Field(0.005, ge=0)
     remap_keyframes: int = Field(20, gt=0)
+    loop_field_check: bool = True
+    loop_field_tolerance: float = Field(0.0, ge=0)
 
 
 class OutputConfig(StrictModel):

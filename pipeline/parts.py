@@ -202,12 +202,14 @@ class GraphBackend:
     solve / write-back rules). Keeps factors, the loop closer's keyframe images and the frontend's chain since
     the last keyframe; every pose comes from the trajectory."""
 
-    def __init__(self, cfg: BackendConfig, graph, loop_closer, link, field_default_information: np.ndarray):
+    def __init__(self, cfg: BackendConfig, graph, loop_closer, link, field_default_information: np.ndarray,
+                 pose_losses=None):
         self.cfg = cfg
         self.graph, self.loop_closer, self.link = graph, loop_closer, link
         self._default_info = field_default_information
+        self._pose_losses = pose_losses if cfg.loop_field_check else None   # (rgb, depth, [T_w_c]) -> losses
         self._last: int | None = None
-        self.n_loops = self.n_solves = 0
+        self.n_loops = self.n_solves = self.n_loops_disputed = 0
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
         self.graph.add_keyframe(frame.index, T_w_c0)
@@ -236,14 +238,13 @@ class GraphBackend:
         # 3. Loops against earlier keyframes.
         loops = []
         if "loop" in factors:
-            loops = self.loop_closer.detect(j, frame, poses)
+            loops = self._agreed_by_field(self.loop_closer.detect(j, frame, poses), frame, poses)
             for lc in loops:
                 self.graph.add_loop(lc.i, lc.j, lc.T_i_j, lc.information)
         self.loop_closer.add_keyframe(j, frame)
         self._last = j
         self.n_loops += len(loops)
-        real = [lc for lc in loops if lc.correction_m > self.cfg.loop_min_correction_m
-                or lc.correction_deg > self.cfg.loop_min_correction_deg]
+        real = [lc for lc in loops if self._is_correction(lc)]
         if len(loops) > len(real):
             log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", j,
                      len(loops) - len(real))
@@ -255,6 +256,28 @@ class GraphBackend:
             self.graph.set_measurement("field", a, b, inv(poses[a]) @ poses[b])
         self.n_solves += 1
         return Correction(self.graph.optimise(poses), len(loops), True)
+
+    def _is_correction(self, lc) -> bool:
+        return lc.correction_m > self.cfg.loop_min_correction_m or lc.correction_deg > self.cfg.loop_min_correction_deg
+
+    def _agreed_by_field(self, loops: list, frame: Frame, poses: dict[int, np.ndarray]) -> list:
+        """The loops the map does not dispute (see ``BackendConfig.loop_field_check``): consistent
+        re-observations always; corrections only where the new keyframe fits the field at the loop's pose at
+        least as well as at its current one."""
+        if self._pose_losses is None or not any(self._is_correction(lc) for lc in loops):
+            return loops
+        j = frame.index
+        corrections = [lc for lc in loops if self._is_correction(lc)]
+        losses = self._pose_losses(frame.rgb, frame.depth, [poses[j]] + [poses[lc.i] @ lc.T_i_j for lc in corrections])
+        kept = [lc for lc in loops if not self._is_correction(lc)]
+        for lc, loss in zip(corrections, losses[1:]):
+            if np.isfinite(loss) and np.isfinite(losses[0]) and loss > losses[0] * (1.0 + self.cfg.loop_field_tolerance):
+                self.n_loops_disputed += 1
+                log.info("loop %d-%d dropped: the map disputes its correction (%.3f m, %.2f deg; loss %.4g vs %.4g "
+                         "at the current pose)", lc.i, j, lc.correction_m, lc.correction_deg, loss, losses[0])
+            else:
+                kept.append(lc)
+        return kept
 
 
 # -------------------------------------------------------------------------------------------------- factory
@@ -299,5 +322,6 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
         g = cfg.graph
         backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),
                                KeyframeLink(cfg.odometry.registration, cfg.odometry.gates),
-                               diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation))
+                               diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation),
+                               field.pose_losses if field is not None else None)
     return Parts(seeder, refiner, keyframer, mapper, backend, field)

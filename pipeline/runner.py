@@ -201,6 +201,7 @@ class SlamRunner:
         counts = {
             "n_loop_closures": self.n_loops, "n_remaps": self.n_remaps,
             "n_graph_solves": p.backend.n_solves if p.backend is not None else 0,
+            "n_loops_disputed_by_field": p.backend.n_loops_disputed if p.backend is not None else 0,
             "seed_failures": sum(not r.seed_ok for r in recs),
             "refine_failures": sum(r.refine_ok is False for r in recs),
             "refinements_kept": sum(bool(r.refine_accepted) for r in recs),

@@ -206,3 +206,34 @@ def test_keyframe_link_falls_back_to_the_chained_odometry_with_propagated_covari
     np.testing.assert_allclose(np.linalg.inv(m.information), cov, rtol=1e-4, atol=1e-10)  # 1e-9 regulariser
     # the chain restarts at the new keyframe
     assert link.measure(3, blank).frames == 0
+
+
+def test_a_loop_correction_the_map_disputes_is_dropped():
+    """``backend.loop_field_check``: the new keyframe's field loss at the pose a correcting loop implies
+    decides: worse than at the current pose -> the loop is dropped (counted, no solve); better -> kept and
+    solved for. Consistent re-observations are never checked."""
+    poses = _walk(8)
+    T_0_7 = inv(poses[0]) @ poses[7] @ make_pose(np.eye(3), [-0.05, 0, 0])
+    asked = []
+
+    def run(map_prefers_loop: bool):
+        loops = _Loops()
+        loops.queue[6] = [LoopConstraint(0, 6, inv(poses[0]) @ poses[6], INFO, 0.9, 0.005, 0.001, 0.05)]
+        loops.queue[7] = [LoopConstraint(0, 7, T_0_7, INFO * 100, 0.9, 0.005, 0.05, 0.0)]
+
+        def pose_losses(rgb, depth, candidates):
+            asked.append(len(candidates))
+            np.testing.assert_allclose(candidates[1], poses[0] @ T_0_7)   # the loop's pose of keyframe 7
+            return [1.0, 0.8 if map_prefers_loop else 1.3]
+
+        backend = GraphBackend(BackendConfig(factors=["field", "loop"]), PoseGraph(GraphConfig()), loops,
+                               _Link(make_pose(np.eye(3), [0.1, 0.0, 0.0])), INFO, pose_losses)
+        backend.start(_frame(0), poses[0])
+        for k in range(1, 8):
+            corr = backend.on_keyframe(_frame(k), {i: poses[i] for i in range(k + 1)}, INFO)
+        return backend, corr
+
+    backend, corr = run(map_prefers_loop=False)
+    assert asked == [2] and backend.n_loops_disputed == 1 and backend.n_loops == 1 and not corr.solved
+    backend, corr = run(map_prefers_loop=True)
+    assert backend.n_loops_disputed == 0 and backend.n_loops == 2 and corr.solved
