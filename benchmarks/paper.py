@@ -16,7 +16,7 @@ section (< 2 minutes, for testing the script). None is the paper's GPU-sized set
 
 Usage::
 
-    python benchmarks/paper.py [--quick | --smoke] [--docs docs] [--work runs/paper] [--threads N]
+    python benchmarks/paper.py [--quick | --smoke] [--docs docs] [--work runs/paper] [--threads N] [--reuse]
 """
 
 from __future__ import annotations
@@ -81,16 +81,26 @@ def _shared_data() -> Path:
     return Path(os.environ.get("LRSLAM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+REUSE = {"on": False}   # --reuse: take a run's metrics from an earlier, identical run in --work
+
+
 def _run(seq: Path, preset: str, repr_name: str, out: Path, overrides: list[str]) -> dict:
     from lrslam.pipeline.config import build_config
     from lrslam.pipeline.run import run_sequence
 
+    key = {"seq": str(Path(seq).resolve()), "preset": preset, "repr": repr_name, "overrides": list(overrides)}
+    done = out / "paper_run.json"
+    if REUSE["on"] and done.exists():
+        prev = json.loads(done.read_text())
+        if prev.get("key") == key:
+            return prev["metrics"]
     cfg = build_config(preset, repr_name, overrides=overrides, mode="field")
     t = time.process_time()
     m = dict(run_sequence(seq, cfg, out, progress=False).metrics)
     # CPU seconds per frame of this process (1 thread: what the run takes alone); the wall-clock fpt_s also
     # counts the time other processes on a shared machine took from it.
     m["cpu_fpt_s"] = (time.process_time() - t) / max(int(m.get("n_frames", 1)), 1)
+    done.write_text(json.dumps({"key": key, "metrics": m}, default=str))
     return m
 
 
@@ -287,7 +297,10 @@ def main() -> int:
     ap.add_argument("--docs", type=Path, default=Path(__file__).resolve().parents[1] / "docs")
     ap.add_argument("--work", type=Path, default=Path("runs/paper"))
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    ap.add_argument("--reuse", action="store_true", help="resume: reuse the runs an interrupted call with the same "
+                    "--work finished (same sequence, preset, representation and overrides)")
     a = ap.parse_args()
+    REUSE["on"] = a.reuse
     size = SIZES["smoke" if a.smoke else "quick" if a.quick else "full"]
     if a.threads:
         import torch
