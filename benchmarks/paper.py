@@ -10,9 +10,10 @@ Sections (each number is measured by this script, next to the paper's):
      CP-SA vs tri-plane: depth L1, accuracy, completion, completion ratio (ESLAM mesh protocol), ATE mean / RMSE.
   5. Convergence: first-frame mapping loss and rendered depth L1 vs mapping iteration per variant.
 
-Settings are CPU-sized (stated in the document). Default (full): ~1 hour on a shared 2-core CPU, 5 seeds per
-variant; ``--quick``: under 15 minutes on a 2-core CPU, 3 seeds; ``--smoke``: a tiny run that exercises every
-section (< 2 minutes, for testing the script). None is the paper's GPU-sized setting.
+Settings are CPU-sized (stated in the document). Default (full): 5 seeds per variant, ~20 CPU-minutes
+(estimated); ``--quick``: 3 seeds, 8 CPU-minutes measured (under 15 minutes on a 2-core CPU not shared with other
+sessions); ``--smoke``: a tiny run that exercises every section (< 2 minutes alone, for testing the script). None
+is the paper's GPU-sized setting.
 
 Usage::
 
@@ -65,12 +66,13 @@ SIZES = {
         "field.tracking.iters=3", "field.tracking.n_rays=100", "field.mapping.iters=3", "field.mapping.n_rays=200",
         "field.mapping.first_iters=10", "field.render.n_stratified=8", "field.render.n_importance=4",
         "field.mesh.resolution=0.1")),
-    # quick: ~11 min of CPU on 2 cores (13-15 min wall while three other sessions shared the cores).
+    # quick: 8.1 CPU-minutes measured (1 thread: ~9 minutes alone); 60 minutes of wall time when the 2 cores were
+    # shared with up to ~30 runnable processes of other sessions.
     "quick": Size("quick", 10, 6, 3, 2, 16, 10, 50_000, (5, 10, 20, 40, 80), tuple(VARIANTS), (
         "field.tracking.iters=8", "field.tracking.n_rays=300", "field.mapping.iters=8", "field.mapping.n_rays=600",
         "field.mapping.first_iters=60", "field.mesh.resolution=0.05")),
-    # full: 5 seeds, more frames than quick at quick's iterations, so that it fits about an hour on the 2-core CPU
-    # shared with other sessions (the preset defaults, 20-30 x 400-800 tracking, would take ~5x longer).
+    # full: 5 seeds, more frames than quick at quick's iterations: ~20 CPU-minutes (estimated from quick), about an
+    # hour on 2 cores shared with other sessions (the preset defaults, 20-30 x 400-800 tracking, take ~5x longer).
     "full": Size("full", 16, 8, 5, 2, 20, 20, 200_000, (5, 10, 20, 40, 80, 160), tuple(VARIANTS), (
         "field.tracking.iters=8", "field.tracking.n_rays=300", "field.mapping.iters=8", "field.mapping.n_rays=600",
         "field.mapping.first_iters=60", "field.mesh.resolution=0.05")),
