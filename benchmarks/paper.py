@@ -328,7 +328,8 @@ def main() -> int:
     results["load"] = {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "start": load_start,
                        "end": os.getloadavg()[0]}
     path = write_report(a.docs / "RESULTS.md", size, results, timings, PAPER_T1, PAPER_T4)
-    (work / "results.json").write_text(json.dumps({k: v for k, v in results.items() if k != "table1"} | {"timings": timings}, indent=1,
+    saved = {k: v for k, v in results.items() if k != "table1"} | {"timings": timings}
+    (work / "results.json").write_text(json.dumps(saved, indent=1,
                                                   default=str))
     print(f"[paper] wrote {path} in {timings['total']:.0f} s")
     return 0

@@ -116,7 +116,8 @@ def write_report(path: Path, size, res: dict, timings: dict, paper_t1: dict, pap
     if ratio_rows:
         L += ["", "CP-SA / tri-plane CPU time per frame, per sequence (means over the seeds above): " +
               ", ".join(ratio_rows) + "."]
-    L += ["", ("Parameters: the paper's total (f_g + f_a + decoders) at the run's bound. Paper (ScanNet, Fig. ablation): SA and "
+    L += ["", ("Parameters: the paper's total (f_g + f_a + decoders) at the run's bound. Paper (ScanNet, Fig. "
+          "ablation): SA and "
           "CP take \"4-6 % and 8-12 % less\" parameters than tri-plane. Read as *fewer* that contradicts its own "
           "Table 1 (CP-SA has 87-90 % fewer); read as *of* tri-plane it matches the closed forms at ScanNet "
           "bounds (scene0000: CP-CP 0.71 M = 4.0 %, SA-SA 1.42 M = 8.0 % of 17.63 M) with CP and SA swapped. "
