@@ -10,12 +10,14 @@ Sections (each number is measured by this script, next to the paper's):
      CP-SA vs tri-plane: depth L1, accuracy, completion, completion ratio (ESLAM mesh protocol), ATE mean / RMSE.
   5. Convergence: first-frame mapping loss and rendered depth L1 vs mapping iteration per variant.
 
-Settings are CPU-sized (stated in the document). ``--quick``: under 15 minutes on a 2-core CPU; ``--smoke``: a
-tiny run that exercises every section (< 2 minutes, for testing the script); neither is comparable to the paper.
+Settings are CPU-sized (stated in the document). Default (full): 5 seeds per variant, ~20 CPU-minutes
+(estimated); ``--quick``: 3 seeds, 8 CPU-minutes measured (under 15 minutes on a 2-core CPU not shared with other
+sessions); ``--smoke``: a tiny run that exercises every section (< 2 minutes alone, for testing the script). None
+is the paper's GPU-sized setting.
 
 Usage::
 
-    python benchmarks/paper.py [--quick | --smoke] [--docs docs] [--work runs/paper] [--threads N]
+    python benchmarks/paper.py [--quick | --smoke] [--docs docs] [--work runs/paper] [--threads N] [--reuse]
 """
 
 from __future__ import annotations
@@ -64,10 +66,16 @@ SIZES = {
         "field.tracking.iters=3", "field.tracking.n_rays=100", "field.mapping.iters=3", "field.mapping.n_rays=200",
         "field.mapping.first_iters=10", "field.render.n_stratified=8", "field.render.n_importance=4",
         "field.mesh.resolution=0.1")),
-    "quick": Size("quick", 12, 8, 3, 2, 16, 50, 100_000, (5, 10, 20, 40, 80), tuple(VARIANTS), (
+    # quick: 8.1 CPU-minutes measured (1 thread: ~9 minutes alone); 60 minutes of wall time when the 2 cores were
+    # shared with up to ~30 runnable processes of other sessions.
+    "quick": Size("quick", 10, 6, 3, 2, 16, 10, 50_000, (5, 10, 20, 40, 80), tuple(VARIANTS), (
         "field.tracking.iters=8", "field.tracking.n_rays=300", "field.mapping.iters=8", "field.mapping.n_rays=600",
         "field.mapping.first_iters=60", "field.mesh.resolution=0.05")),
-    "full": Size("full", 40, 30, 5, 3, 40, 200, 200_000, (10, 25, 50, 100, 200, 400)),
+    # full: 5 seeds, more frames than quick at quick's iterations: ~20 CPU-minutes (estimated from quick), about an
+    # hour on 2 cores shared with other sessions (the preset defaults, 20-30 x 400-800 tracking, take ~5x longer).
+    "full": Size("full", 16, 8, 5, 2, 20, 20, 200_000, (5, 10, 20, 40, 80, 160), tuple(VARIANTS), (
+        "field.tracking.iters=8", "field.tracking.n_rays=300", "field.mapping.iters=8", "field.mapping.n_rays=600",
+        "field.mapping.first_iters=60", "field.mesh.resolution=0.05")),
 }
 
 
@@ -75,12 +83,27 @@ def _shared_data() -> Path:
     return Path(os.environ.get("LRSLAM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+REUSE = {"on": False}   # --reuse: take a run's metrics from an earlier, identical run in --work
+
+
 def _run(seq: Path, preset: str, repr_name: str, out: Path, overrides: list[str]) -> dict:
     from lrslam.pipeline.config import build_config
     from lrslam.pipeline.run import run_sequence
 
+    key = {"seq": str(Path(seq).resolve()), "preset": preset, "repr": repr_name, "overrides": list(overrides)}
+    done = out / "paper_run.json"
+    if REUSE["on"] and done.exists():
+        prev = json.loads(done.read_text())
+        if prev.get("key") == key:
+            return prev["metrics"]
     cfg = build_config(preset, repr_name, overrides=overrides, mode="field")
-    return run_sequence(seq, cfg, out, progress=False).metrics
+    t = time.process_time()
+    m = dict(run_sequence(seq, cfg, out, progress=False).metrics)
+    # CPU seconds per frame of this process (1 thread: what the run takes alone); the wall-clock fpt_s also
+    # counts the time other processes on a shared machine took from it.
+    m["cpu_fpt_s"] = (time.process_time() - t) / max(int(m.get("n_frames", 1)), 1)
+    done.write_text(json.dumps({"key": key, "metrics": m}, default=str))
+    return m
 
 
 def _synthetic(work: Path, n: int, noise_sigma: float = 0.0) -> Path:
@@ -102,17 +125,21 @@ def table1(size: Size, work: Path) -> dict:
         for r in ("lrslam", "eslam"):
             cfg = build_config(ds, r)
             c = SceneModel(np.asarray(cfg.bound), cfg.field.model).parameter_count()
-            counts[(ds, r)] = (c["geometry"], c["appearance"], c["total"] + c["decoders"])
+            counts[(ds, r)] = (c["geometry"], c["appearance"], c["total"])   # total includes the decoders
     # Whole-run frame time, CP-SA and tri-plane alternated in this process (same sequence, same settings).
     seq = _synthetic(work, size.frames)
     ov = list(size.overrides) + ["output.mesh=false", "output.plots=false"]
     fpt = {"lrslam": [], "eslam": []}
+    cpu = {"lrslam": [], "eslam": []}
     _run(seq, "synthetic", "lrslam", work / "timing" / "warmup", ov)   # numba compilation, not timed
     for i in range(size.timing_pairs):
         for r in (("lrslam", "eslam") if i % 2 == 0 else ("eslam", "lrslam")):
-            fpt[r].append(_run(seq, "synthetic", r, work / "timing" / f"{r}_{i}", ov)["fpt_s"])
+            m = _run(seq, "synthetic", r, work / "timing" / f"{r}_{i}", ov)
+            fpt[r].append(m["fpt_s"])
+            cpu[r].append(m["cpu_fpt_s"])
     ratios = [a / b for a, b in zip(fpt["lrslam"], fpt["eslam"])]
-    return {"counts": counts, "fpt": fpt, "ratios": ratios}
+    cpu_ratios = [a / b for a, b in zip(cpu["lrslam"], cpu["eslam"])]
+    return {"counts": counts, "fpt": fpt, "ratios": ratios, "cpu_fpt": cpu, "cpu_ratios": cpu_ratios}
 
 
 # --------------------------------------------------------------------------------------- 2. memory growth
@@ -121,7 +148,7 @@ def memory_growth(docs: Path) -> dict:
 
     sides = [1.2, 2.4, 4.8, 9.6, 19.2]
     kinds = {"tri-plane": "eslam", "CP (CP-CP)": "cp-cp", "SA (SA-SA)": "sa-sa", "CP-SA": "lrslam"}
-    rows = {k: [SceneModel(np.array([[0.0, L]] * 3), SceneModelConfig.preset(p)).parameter_count()["total"]
+    rows = {k: [SceneModel(np.array([[0.0, L]] * 3), SceneModelConfig.preset(p)).parameter_count()["encodings"]
                 for L in sides] for k, p in kinds.items()}
     slopes = {k: float(np.polyfit(np.log(sides[2:]), np.log(v[2:]), 1)[0]) for k, v in rows.items()}
     import matplotlib
@@ -159,7 +186,7 @@ def ablation(size: Size, work: Path, docs: Path) -> dict:
             for s in range(size.seeds):
                 ov = list(size.overrides) + extra + [f"field.seed={s}", "output.mesh=false", "output.plots=false"]
                 m = _run(path, preset, r, work / "ablation" / preset / r / f"seed{s}", ov)
-                runs.append({"ate": m.get("ate_rmse_cm", float("nan")), "fpt": m["fpt_s"],
+                runs.append({"ate": m.get("ate_rmse_cm", float("nan")), "fpt": m["fpt_s"], "cpu_fpt": m["cpu_fpt_s"],
                              "params": m.get("parameters", {}).get("total")})
             res[label][vname] = runs
     import matplotlib
@@ -203,7 +230,8 @@ def noise_robustness(size: Size, work: Path) -> dict:
         except InputError as e:  # an empty mesh (tiny --smoke settings) has no metrics: say so, do not stop
             print(f"[paper] noise, {r}: no mesh metrics ({e})", flush=True)
             rec = {"mesh_error": str(e)}
-        out[r] = {**{k: rec.get(k) for k in ("depth_l1_cm", "accuracy_cm", "completion_cm", "completion_ratio")},
+        out[r] = {**{k: rec.get(k) for k in ("depth_l1_cm", "accuracy_cm", "completion_cm", "completion_ratio",
+                                             "depth_views_fallback", "icp_translation_cm", "icp_rotation_deg")},
                   "ate_mean_cm": m.get("ate_mean_cm"), "ate_rmse_cm": m.get("ate_rmse_cm")}
     return out
 
@@ -271,7 +299,10 @@ def main() -> int:
     ap.add_argument("--docs", type=Path, default=Path(__file__).resolve().parents[1] / "docs")
     ap.add_argument("--work", type=Path, default=Path("runs/paper"))
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    ap.add_argument("--reuse", action="store_true", help="resume: reuse the runs an interrupted call with the same "
+                    "--work finished (same sequence, preset, representation and overrides)")
     a = ap.parse_args()
+    REUSE["on"] = a.reuse
     size = SIZES["smoke" if a.smoke else "quick" if a.quick else "full"]
     if a.threads:
         import torch
@@ -282,6 +313,7 @@ def main() -> int:
     t0 = time.perf_counter()
     timings = {}
     results = {}
+    load_start = os.getloadavg()[0]
     for name, fn in (("table1", lambda: table1(size, work)), ("memory", lambda: memory_growth(a.docs)),
                      ("ablation", lambda: ablation(size, work, a.docs)),
                      ("noise", lambda: noise_robustness(size, work)),
@@ -291,8 +323,13 @@ def main() -> int:
         timings[name] = time.perf_counter() - t
         print(f"[paper] {name}: {timings[name]:.1f} s", flush=True)
     timings["total"] = time.perf_counter() - t0
+    import torch
+
+    results["load"] = {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "start": load_start,
+                       "end": os.getloadavg()[0]}
     path = write_report(a.docs / "RESULTS.md", size, results, timings, PAPER_T1, PAPER_T4)
-    (work / "results.json").write_text(json.dumps({k: v for k, v in results.items() if k != "table1"}, indent=1,
+    saved = {k: v for k, v in results.items() if k != "table1"} | {"timings": timings}
+    (work / "results.json").write_text(json.dumps(saved, indent=1,
                                                   default=str))
     print(f"[paper] wrote {path} in {timings['total']:.0f} s")
     return 0

@@ -136,7 +136,8 @@ class FieldSLAM:
                            n_rays, torch.Generator().manual_seed(0))
 
     def parameter_count(self) -> dict[str, int]:
-        """{"geometry", "appearance", "decoders", "total" (= encodings, as the paper)}."""
+        """Counts by part: see :meth:`SceneModel.parameter_count` (``total`` includes the decoders, as the
+        paper's Table 1 Total)."""
         return self.model.parameter_count()
 
     # ------------------------------------------------------------------------------------------ state

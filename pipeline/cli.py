@@ -129,7 +129,7 @@ def params(
     bound: Optional[str] = typer.Option(None, help="Override bound: xmin,xmax,ymin,ymax,zmin,zmax (metres)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
 ) -> None:
-    """Print the parameter table (f_g, f_a, f_g + f_a, decoders, all: the paper's Table 1) for a config's bound."""
+    """Print the parameter table (f_g, f_a, f_g + f_a, decoders, total: the paper's Table 1) for a config's bound."""
     import numpy as np
 
     from lrslam.field.model import SceneModel
@@ -154,16 +154,16 @@ def params(
     for name in names:
         rcfg = load_run_config(config, name).cfg
         counts = SceneModel(b, rcfg.field.model).parameter_count()
-        rows[name] = {**counts, "all": counts["total"] + counts["decoders"]}
+        rows[name] = counts
     if as_json:
         typer.echo(dumps({"bound": b.tolist(), "parameters": rows}, indent=2))
         return
     typer.echo(f"bound {b.tolist()} (metres)")
-    typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'total':>12}{'decoders':>10}{'all':>12}")
+    typer.echo(f"{'representation':<16}{'f_g':>12}{'f_a':>12}{'f_g+f_a':>12}{'decoders':>10}{'total':>12}")
     for name, c in rows.items():
         typer.echo(f"{name:<16}{c['geometry'] / 1e6:>11.3f}M{c['appearance'] / 1e6:>11.3f}M"
-                   f"{c['total'] / 1e6:>11.3f}M{c.get('decoders', 0):>10,}{c['all'] / 1e6:>11.3f}M")
-    typer.echo("total = f_g + f_a; all = total + decoders (the paper's Table 1 'Total' includes the decoders)")
+                   f"{c['encodings'] / 1e6:>11.3f}M{c['decoders']:>10,}{c['total'] / 1e6:>11.3f}M")
+    typer.echo("total = f_g + f_a + decoders, as the paper's Table 1 'Total'")
 
 
 def batch(
