@@ -150,6 +150,7 @@ def run_grid(jobs: list[Job], out: str | Path, executor, progress: bool = True, 
     def on_start(job_dict: dict[str, Any]) -> None:
         entries[job_dict["name"]]["status"] = "running"
         bar.start(job_dict)
+        _save(out, list(entries.values()), desc)
 
     try:
         for res in executor.run([j.to_dict() for j in todo], str(out), on_start):

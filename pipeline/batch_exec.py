@@ -152,9 +152,11 @@ class RayExecutor:
                     self.gpus_per_job = n_gpus / self.workers if n_gpus else 0.0
                 ray.init(num_cpus=self.workers * self.cpus_per_job, num_gpus=n_gpus, include_dashboard=False,
                          object_store_memory=100 * 1024**2, **quiet)
-        except (ConnectionError, RuntimeError, ValueError) as e:
-            where = f"--address {self.address}" if self.address else "local Ray"
-            raise InputError(f"{where}: cannot start or reach Ray: {' '.join(str(e).split())}") from None
+        except Exception as e:  # Ray raises plain Exception too (e.g. "node timed out during startup")
+            where = f"--address {self.address}: cannot reach the Ray cluster" if self.address else \
+                "local Ray did not start"
+            raise InputError(f"{where} ({' '.join(str(e).split())[:300]}); --sequential runs the batch without "
+                             "Ray") from None
         cpus = ray.cluster_resources().get("CPU", 0)
         self.slots = max(1, int(cpus // self.cpus_per_job))
         self._task = ray.remote(_ray_task).options(num_cpus=self.cpus_per_job, num_gpus=self.gpus_per_job or 0,

@@ -113,18 +113,19 @@ def collect_runs(runs_dir: str | Path) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------------------------ statistics
-def _mean_std(values: list[float]) -> tuple[float, float] | None:
+def _mean_std(values: list[float]) -> tuple[float, float, int] | None:
+    """(mean, sample std, n) of the finite values (std 0 for one value), None when there is none."""
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
     if not len(v):
         return None
-    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
+    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0, len(v)
 
 
 def summarise(entries: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
     """``{sequence_name: {variant: stats}}``; stats: ``runs`` (all entries), ``ok`` (those with metrics),
-    ``failed``, ``pending``, ``ate_rmse`` / ``ate_mean`` ((mean, std) or None), ``per_seed`` ([(seed, rmse)]),
+    ``failed``, ``pending``, ``ate_rmse`` / ``ate_mean`` ((mean, std, n) or None), ``per_seed`` ([(seed, rmse)]),
     ``fpt_s`` (mean s/frame), ``stages`` (stage -> mean s/frame), ``parameters`` (of the first run), and
-    ``mesh`` (key -> (mean, std))."""
+    ``mesh`` (key -> (mean, std, n) or None)."""
     out: dict[str, dict[str, dict[str, Any]]] = {}
     for e in entries:
         g = out.setdefault(e["sequence_name"], {}).setdefault(e["variant"], {"runs": [], "ok": [], "failed": [],
@@ -155,8 +156,10 @@ def summarise(entries: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, An
     return out
 
 
-def _pm(ms: tuple[float, float] | None, fmt: str = "{:.2f}") -> str:
-    return "-" if ms is None else f"{fmt.format(ms[0])} ± {fmt.format(ms[1])}"
+def _pm(ms: tuple[float, float, int] | None, fmt: str = "{:.2f}") -> str:
+    if ms is None:
+        return "-"
+    return f"{fmt.format(ms[0])} ± {fmt.format(ms[1])}" if ms[2] > 1 else f"{fmt.format(ms[0])} (1 run)"
 
 
 def _num(x, fmt: str) -> str:
@@ -217,7 +220,7 @@ def _csv_text(summary) -> str:
         for variant, g in by_variant.items():
             ms = [g["ate_rmse"], g["ate_mean"]]
             w.writerow([seq, variant, g["mode"], g["representation"] or "", len(g["runs"]), len(g["ok"]),
-                        len(g["failed"])] + [x for m in ms for x in (m or ("", ""))]
+                        len(g["failed"])] + [x for m in ms for x in (m[:2] if m else ("", ""))]
                        + [";".join(f"s{s}={v}" for s, v in g["per_seed"]), g["fpt_s"] if g["fpt_s"] is not None
                           else "", (g["parameters"] or {}).get("total", "")]
                        + [g["mesh"][k][0] if g["mesh"][k] else "" for k, _ in MESH_KEYS])
