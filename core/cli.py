@@ -1,4 +1,4 @@
-"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``batch``, ``params``.
+"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``batch``, ``report``, ``params``.
 
 Each command's body lives next to the code it drives (``*/cli.py`` modules); heavy libraries (torch, open3d,
 gtsam) are imported inside the command functions so ``lrslam --help`` stays fast.
@@ -51,7 +51,7 @@ def _register() -> None:
     if getattr(app, "_lrslam_registered", False):
         return
     from lrslam.frontend.synthetic.cli import synth
-    from lrslam.pipeline.cli import batch, params, run
+    from lrslam.pipeline.cli import batch, params, report, run
     from lrslam.pipeline.evaluation.cli import eval_app
 
     app.command("synth")(synth)
@@ -59,6 +59,7 @@ def _register() -> None:
     app.command("run")(run)
     app.command("params")(params)
     app.command("batch")(batch)
+    app.command("report")(report)
     app._lrslam_registered = True  # type: ignore[attr-defined]
 
 

@@ -13,7 +13,7 @@ from lrslam.jsonio import dumps
 from lrslam.logs import setup_console_logging
 from lrslam.threads import set_threads
 
-__all__ = ["run", "params", "DEMO_SYNTH"]
+__all__ = ["run", "params", "batch", "report", "DEMO_SYNTH"]
 
 # The built-in demo sequence: a textured room, a loop trajectory, Kinect-like depth noise.
 DEMO_SYNTH = dict(scene="room", trajectory="loop", n_frames=80, seed=0, width=320, height=240)
@@ -166,41 +166,77 @@ def params(
     typer.echo("total = f_g + f_a + decoders, as the paper's Table 1 'Total'")
 
 
-def batch(
-    paths: list[Path] = typer.Argument(..., help="One or more sequence folders."),
-    out: Path = typer.Option(Path("runs/batch"), "--out", "-o"),
-    modes: str = typer.Option("field,frontend,fused", help="Comma-separated modes to compare side by side."),
-    config: Optional[str] = typer.Option(None, "--config", "-c", help="Dataset preset or YAML (applies to all)."),
-    representation: Optional[str] = typer.Option(None, "--repr"),
-    overrides: Optional[list[str]] = typer.Option(None, "--set"),
-    max_frames: Optional[int] = typer.Option(None, min=1),
-    quiet: bool = typer.Option(False, "--quiet", "-q"),
-) -> None:
-    """Run every sequence in every mode and print the side-by-side comparison table (also OUT/comparison.md).
+def _csv(text: str | None) -> list[str]:
+    return [x.strip() for x in (text or "").split(",") if x.strip()]
 
-    Exit code 1 when any job failed (each failed job is named on stderr), 3 when any run is degraded.
+
+def batch(
+    paths: list[str] = typer.Argument(..., help="Sequence folders; SEQ:PRESET runs that sequence with its own "
+                                                "dataset preset or YAML file."),
+    out: Path = typer.Option(Path("runs/batch"), "--out", "-o", help="Batch folder: one run folder per job."),
+    modes: str = typer.Option("field,frontend,fused", help="Comma-separated modes to compare side by side."),
+    seeds: int = typer.Option(1, "--seeds", help="Field seeds per field / fused job (field.seed = 0..N-1)."),
+    config: Optional[str] = typer.Option(None, "--config", "--preset", "-c",
+                                         help="Dataset preset or YAML for sequences that name none."),
+    representation: Optional[str] = typer.Option(None, "--repr", help="Comma-separated representation presets."),
+    overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override for every job, key.sub=value."),
+    max_frames: Optional[int] = typer.Option(None, min=1),
+    cpus_per_job: int = typer.Option(1, "--cpus-per-job", min=1, help="CPUs (and threads) per job."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local Ray: jobs at a time (default: "
+                                                                         "CPUs // --cpus-per-job)."),
+    address: Optional[str] = typer.Option(None, "--address", help="Run on this Ray cluster (e.g. auto, or "
+                                                                  "ray://host:10001) instead of a local Ray."),
+    gpus_per_job: Optional[float] = typer.Option(None, "--gpus-per-job", min=0, help="GPUs per job (default: "
+                                                 "local Ray shares this machine's GPUs, a cluster 0)."),
+    sequential: bool = typer.Option(False, "--sequential", help="Run the jobs one after another in this process "
+                                                                "even when Ray is installed."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and job lines."),
+) -> None:
+    """Run the job grid sequences x modes x seeds x representations (Ray tasks when Ray is installed) and print
+    the comparison table; OUT gets comparison.md / .csv, report.html and batch.json. A re-run skips complete jobs.
+
+    Exit code 1 when any job failed (each failed job is named on stderr), 2 on a bad path or setting (before any
+    job starts), 3 when any run is degraded.
     """
-    from lrslam.pipeline.batch import comparison_table, failed_jobs, run_batch
-    from lrslam.pipeline.config_source import load_run_config
-    from lrslam.pipeline.run_folder import check_output_folder
+    from lrslam.pipeline.batch import run_grid
+    from lrslam.pipeline.batch_exec import make_executor
+    from lrslam.pipeline.batch_grid import check_jobs, expand_grid, is_complete
 
     setup_console_logging()
     ov = list(overrides or []) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
-    check_output_folder(out)
-    configs = {}
-    for m in [x.strip() for x in modes.split(",") if x.strip()]:
-        if m not in ("field", "frontend", "fused"):
-            raise InputError(f"--modes: unknown mode {m!r}: use field, frontend or fused")
-        loaded = load_run_config(config, representation, overrides=ov, mode=m)
-        configs[m] = loaded.cfg.model_dump(mode="json")
-    results = run_batch([str(p) for p in paths], configs, out, progress=not quiet)
-    typer.echo(comparison_table(results))
-    typer.echo(f"wrote {out / 'comparison.md'} and {out / 'comparison.json'}")
-    failed = failed_jobs(results)
-    for job, err in failed:
-        typer.echo(f"error: job {job} failed: {err}", err=True)
-    if failed:
+    jobs = expand_grid(paths, _csv(modes), seeds, _csv(representation), config, ov)
+    check_jobs(jobs, out)     # before Ray starts: a bad path costs nothing
+
+    def note(text: str) -> None:
+        typer.echo(text, err=True)
+
+    all_done = all(is_complete(j, out) for j in jobs)    # nothing to run: no Ray to start
+    executor = make_executor(False if sequential or all_done else None, cpus_per_job, workers, address,
+                             gpus_per_job, note)
+    try:
+        outcome = run_grid(jobs, out, executor, progress=not quiet, echo=note)
+    finally:
+        executor.close()
+    typer.echo((out / "comparison.md").read_text().rstrip())
+    written = [out / n for n in ("comparison.md", "comparison.csv", "report.html", "batch.json")]
+    typer.echo("wrote " + ", ".join(str(p) for p in written if p.exists()))
+    for e in outcome.failed():
+        typer.echo(f"error: job {e['name']} failed: {e['error']}", err=True)
+    if outcome.failed():
         raise typer.Exit(1)
-    if any(m.get("status") == "degraded" for by_mode in results.values() for m in by_mode.values()):
+    if outcome.degraded():
         typer.echo("warning: some runs are degraded (see their metrics.json)", err=True)
         raise typer.Exit(3)
+
+
+def report(
+    runs_dir: Path = typer.Argument(..., help="A batch folder (batch.json) or any folder holding run folders."),
+) -> None:
+    """Write RUNS_DIR/report.html (self-contained: tables, ATE box plots over seeds, trajectories on ground truth,
+    time per stage, failed jobs) and comparison.md / comparison.csv; prints the table."""
+    from lrslam.pipeline.report import write_report
+
+    setup_console_logging()
+    page = write_report(runs_dir)
+    typer.echo((runs_dir / "comparison.md").read_text().rstrip())
+    typer.echo(f"wrote {page}, {runs_dir / 'comparison.md'}, {runs_dir / 'comparison.csv'}")

@@ -31,3 +31,11 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def tiny_batch(tmp_path_factory) -> dict:
+    """A finished tiny batch (tests/batch_fixtures.py): 9 jobs, 3 of them failing."""
+    from batch_fixtures import finished_batch
+
+    return finished_batch(tmp_path_factory.mktemp("batch"))

@@ -87,8 +87,8 @@ def make_world(root: Path) -> dict[str, str]:
     (root / "dir.yaml").mkdir()
     (root / "emptydir").mkdir()
     (root / "afile").write_text("just a file\n")
-    for name in ("foreign", "foreign2"):
-        (root / name).mkdir()
+    for name in ("foreign", "foreign2", "o/bforeign/seq/frontend/s0"):   # the last: a batch job's run folder
+        (root / name).mkdir(parents=True)
         (root / name / "notes.txt").write_text("my own notes\n")
     (root / "garbage.txt").write_text("this is not a trajectory\n")
     (root / "nan_traj.txt").write_text("0.0 nan 0 0 0 0 0 1\n")
@@ -199,7 +199,7 @@ def _status_ok(case_out):
 
 
 def _batch_says_which(w, out, err):
-    return None if "missing_seq (frontend)" in err else "the failed job is not named"
+    return None if "job nodepth/frontend/s0 failed" in err else "the failed job is not named"
 
 
 CASES = [
@@ -243,6 +243,11 @@ CASES = [
     Case("params-unknown-preset", ["params", "--config", "nope"], 2, ["nope"], kind="config"),
     # input errors
     Case("sequence-missing", ["run", "{tmp}/missing_seq"], 2, ["missing_seq"], kind="input"),
+    # every batch path is checked before the first job starts (it used to fail as a job, after the others ran)
+    Case("batch-sequence-missing", ["batch", "{seq}", "{tmp}/missing_seq", "--modes", "frontend", "--out",
+                                    "{tmp}/o/batch_missing"], 2, ["missing_seq"], silent=True, kind="input"),
+    Case("batch-job-folder-foreign", ["batch", "{seq}", "--modes", "frontend", "--out", "{tmp}/o/bforeign"], 2,
+         ["frontend", "--overwrite"], silent=True, kind="io"),
     Case("sequence-unknown-layout", ["run", "{tmp}/emptydir"], 2, ["emptydir"], kind="input"),
     Case("first-frame-no-depth", ["run", "{nodepth}", *FAST], 2, ["nodepth", "no valid depth"], kind="input"),
     Case("bad-timestamp", ["run", "{badstamp}", *FAST], 2, ["rgb.txt"], kind="input"),
@@ -303,9 +308,9 @@ CASES = [
          kind="run"),
     Case("ok-run-status", ["run", "{seq}", "--out", "{tmp}/o/okrun", *FAST], 0, [], check=_status_ok("okrun"),
          kind="run"),
-    Case("batch-failed-job", ["batch", "{seq}", "{tmp}/missing_seq", "--modes", "frontend", "--out",
-                              "{tmp}/o/batch", "--max-frames", "4", "-q", "--set", "output.mesh=false", "--set",
-                              "output.plots=false"], 1, ["missing_seq"], check=_batch_says_which, silent=True,
+    Case("batch-failed-job", ["batch", "{seq}", "{nodepth}", "--modes", "frontend", "--out", "{tmp}/o/batch",
+                              "--max-frames", "4", "-q", "--sequential", "--set", "output.mesh=false", "--set",
+                              "output.plots=false"], 1, ["nodepth"], check=_batch_says_which, silent=True,
          kind="run"),
 ]
 
