@@ -24,8 +24,8 @@ import numpy as np
 
 from lrslam.errors import InputError
 
-__all__ = ["CHECKPOINT_NAME", "CHECKPOINT_TMP", "FORMAT_VERSION", "Checkpointer", "load_checkpoint",
-           "config_difference", "check_resumable"]
+__all__ = ["CHECKPOINT_NAME", "CHECKPOINT_TMP", "FORMAT_VERSION", "Checkpointer", "check_resumable",
+           "config_difference", "load_checkpoint"]
 
 log = logging.getLogger(__name__)
 
@@ -35,31 +35,32 @@ _FORMAT = "lrslam-checkpoint"
 FORMAT_VERSION = 1
 
 
+def _map_leaves(obj: Any, fn) -> Any:
+    """``fn`` applied to every leaf of nested dicts / lists / tuples (the containers are rebuilt)."""
+    if isinstance(obj, dict):
+        return {k: _map_leaves(v, fn) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_map_leaves(v, fn) for v in obj)
+    return fn(obj)
+
+
 def _to_torch(obj: Any) -> Any:
     """numpy arrays -> CPU tensors (what ``weights_only`` loading accepts), numpy scalars -> Python numbers."""
     import torch
 
-    if isinstance(obj, np.ndarray):
-        return torch.from_numpy(np.ascontiguousarray(obj))
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, dict):
-        return {k: _to_torch(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_to_torch(v) for v in obj)
-    return obj
+    def leaf(x):
+        if isinstance(x, np.ndarray):
+            return torch.from_numpy(np.ascontiguousarray(x))
+        return x.item() if isinstance(x, np.generic) else x
+
+    return _map_leaves(obj, leaf)
 
 
 def _to_numpy(obj: Any) -> Any:
+    """CPU tensors -> numpy arrays (the inverse of :func:`_to_torch`)."""
     import torch
 
-    if isinstance(obj, torch.Tensor):
-        return obj.numpy()
-    if isinstance(obj, dict):
-        return {k: _to_numpy(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_to_numpy(v) for v in obj)
-    return obj
+    return _map_leaves(obj, lambda x: x.numpy() if isinstance(x, torch.Tensor) else x)
 
 
 class Checkpointer:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["seed_everything", "global_rng_state", "set_global_rng_state", "open3d_threads"]
+__all__ = ["global_rng_state", "open3d_threads", "seed_everything", "set_global_rng_state"]
 
 
 def seed_everything(seed: int) -> None:

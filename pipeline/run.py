@@ -239,6 +239,8 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     ``metrics.json``, with ``status`` "ok" or "degraded").
     """
     out_dir = Path(out_dir)
+    if resume and (out_dir / "metrics.json").is_file() and not (out_dir / CHECKPOINT_NAME).exists():
+        raise InputError(f"--resume: {out_dir}: the run there finished (metrics.json); nothing to resume")
     saved = load_checkpoint(out_dir / CHECKPOINT_NAME) if resume else None
     if not resume:
         out_dir = prepare_run_folder(out_dir, overwrite)

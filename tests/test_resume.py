@@ -179,6 +179,25 @@ def test_restoring_into_a_runner_of_other_parts_is_refused(seq_dir):
         frontend.restore(field.checkpoint())
 
 
+def test_a_checkpoint_interrupted_while_written_leaves_the_previous_one(tmp_path, monkeypatch):
+    import torch
+
+    from lrslam.pipeline.checkpoint import Checkpointer, load_checkpoint
+
+    ck = Checkpointer(tmp_path, 1)
+    ck.save({"frame": 6, "poses": np.eye(4)})
+
+    def killed_mid_write(obj, f):
+        f.write(b"PK\x03\x04 half a zip")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", killed_mid_write)
+    with pytest.raises(KeyboardInterrupt):
+        ck.save({"frame": 12, "poses": np.zeros((4, 4))})
+    state = load_checkpoint(ck.path)
+    assert state["frame"] == 6 and np.array_equal(state["poses"], np.eye(4))
+
+
 def test_global_rng_states_round_trip(tmp_path):
     import random
 
@@ -284,6 +303,8 @@ def test_resume_after_a_crash_gives_the_uninterrupted_run(seq_dir, crashed_run, 
     import json
 
     assert json.loads((crashed_run / "metrics.json").read_text())["resumed_at_frames"]
+    code, err = _cli(["run", seq_dir, "--out", crashed_run, *FRONTEND, "--resume"], capfd)
+    _one_error_line(code, err, "finished")
 
 
 def test_resume_with_another_config_names_the_key(seq_dir, crashed_run, capfd):
@@ -353,7 +374,7 @@ def test_sigkilled_run_resumed_gives_the_uninterrupted_trajectory_bit_for_bit(se
     assert not (out / "metrics.json").exists(), "the run finished before the kill"
     killed_after = (out / "run.log").read_text().count(" done: ")
     for extra in (["--out", str(out), "--resume"], ["--out", str(tmp_path / "straight")]):
-        r = subprocess.run([*args, *extra], capture_output=True, text=True, timeout=300)
+        r = subprocess.run([*args, *extra], check=False, capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr
     for name in ("trajectory.txt", "keyframes.txt", "trajectory_frontend.txt"):
         (t_r, resumed), (t_s, straight) = read_tum(out / name), read_tum(tmp_path / "straight" / name)
