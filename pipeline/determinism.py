@@ -2,7 +2,7 @@
 states captured / restored with a checkpoint.
 
 Global RNGs: Python's ``random``, numpy's legacy ``np.random``, torch's CPU generator (and CUDA's when
-present) and Open3D's. The run's own components draw from generators they own (the field's torch generator and
+present). The run's own components draw from generators they own (the field's torch generator and
 numpy ``Generator``, seeded from ``field.seed`` and checkpointed with the field); seeding the globals guards the
 libraries that reach for them.
 
@@ -28,23 +28,18 @@ __all__ = ["global_rng_state", "open3d_threads", "seed_everything", "set_global_
 
 
 def seed_everything(seed: int) -> None:
-    """Seed Python's, numpy's, torch's (CPU and CUDA) and Open3D's global RNGs with ``seed`` (>= 0)."""
+    """Seed Python's, numpy's and torch's (CPU and CUDA) global RNGs with ``seed`` (>= 0). Open3D's is left
+    alone: nothing in lrslam draws from it (no RANSAC), and importing Open3D for it would slow every field-only
+    run's start and exit."""
     import torch
 
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)  # also seeds every CUDA device
-    try:
-        import open3d as o3d
-
-        o3d.utility.random.seed(seed % 2**31)
-    except (ImportError, AttributeError):  # Open3D without its random module
-        pass
 
 
 def global_rng_state() -> dict[str, Any]:
-    """The global RNG states as plain Python / numpy data (Open3D's cannot be read: it is re-seeded on resume,
-    and nothing in lrslam draws from it)."""
+    """The global RNG states of :func:`seed_everything` as plain Python / numpy data."""
     import torch
 
     kind, key, pos, has_gauss, gauss = np.random.get_state()
