@@ -156,7 +156,7 @@ class _Progress:
                 "resumed_at": list(self.resumed_at)}
 
 
-def _start(path, cfg: RunConfig, seq, first, timer: StageTimer) -> _Progress:
+def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer) -> _Progress:
     """A new run: seed every RNG, choose the bound, build the runner and process the first frame."""
     seed_everything(cfg.seed)
     T0 = np.eye(4)
@@ -175,7 +175,7 @@ def _start(path, cfg: RunConfig, seq, first, timer: StageTimer) -> _Progress:
     return _Progress(runner, bound, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
 
 
-def _resume(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Progress:
+def _resumed_run(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Progress:
     """Continue a run from its checkpoint ``state`` (already checked against the config and sequence)."""
     bound = np.asarray(state["bound"], dtype=np.float64)
     runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
@@ -258,7 +258,10 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
             first = seq[0]
             _check_first_frame(seq, first)
             timer = StageTimer()
-            run = _resume(cfg, first, timer, saved) if saved is not None else _start(path, cfg, seq, first, timer)
+            if saved is not None:
+                run = _resumed_run(cfg, first, timer, saved)
+            else:
+                run = _new_run(path, cfg, seq, first, timer)
             partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
             checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
             _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps),

@@ -240,9 +240,10 @@ def test_same_seed_same_trajectory_other_seed_other_trajectory(seq_dir, tmp_path
                            deterministic=True)
         return run_sequence(seq_dir, cfg, tmp_path / name, progress=False).poses
 
-    a, b, c = poses(3, "a"), poses(3, "b"), poses(4, "c")
+    a, b = poses(3, "a"), poses(3, "b")
     assert np.array_equal(a, b)
-    assert not np.array_equal(a, c)
+    if mode == "field":   # the seed reaches the poses (fused runs only repeat the check, at twice the cost)
+        assert not np.array_equal(a, poses(4, "c"))
 
 
 # ------------------------------------------------------------------------------------------ --resume on the CLI
