@@ -143,7 +143,8 @@ class FieldSLAM:
     # ------------------------------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """Run state as plain Python/numpy: config, bound, intrinsics, field tensors (decoders, beta included),
-        keyframe pixels (poses belong to the trajectory) and RNG state. Restore with :meth:`load_state_dict`."""
+        keyframe pixels (poses belong to the trajectory), RNG states and the mapper's counter. No optimiser state:
+        every mapping round and tracking call starts its own Adam (as ESLAM). Restore with :meth:`load_state_dict`."""
         return {
             "config": self.cfg.model_dump(mode="json"),
             "bound": self.model.bound_np.copy(),
@@ -153,6 +154,7 @@ class FieldSLAM:
             "generator": self.gen.get_state().numpy(),
             "rng": self.mapper.rng.bit_generator.state,
             "initialised": self.initialised,
+            "reverted_poses": self.mapper.reverted_poses,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -165,6 +167,7 @@ class FieldSLAM:
         self.gen.set_state(torch.as_tensor(state["generator"], dtype=torch.uint8))
         self.mapper.rng.bit_generator.state = state["rng"]
         self.initialised = bool(state["initialised"])
+        self.mapper.reverted_poses = int(state.get("reverted_poses", 0))
 
     # ------------------------------------------------------------------------------------------ helpers
     def _require_init(self) -> None:

@@ -67,6 +67,19 @@ class KeyframeLink:
         self._kf_id, self._kf_view = int(kf_id), RGBDView(*_images(frame))
         self._T, self._cov, self._frames = np.eye(4), np.zeros((6, 6)), 0
 
+    def state_dict(self) -> dict:
+        """The previous keyframe (id, images) and the chain since it, for checkpoints."""
+        return {"kf_id": self._kf_id, "kf_view": None if self._kf_view is None else self._kf_view.state(),
+                "T": self._T.copy(), "cov": self._cov.copy(), "frames": self._frames}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output."""
+        self._kf_id = state["kf_id"]
+        self._kf_view = None if state["kf_view"] is None else RGBDView.from_state(state["kf_view"])
+        self._T = np.asarray(state["T"], dtype=np.float64)
+        self._cov = np.asarray(state["cov"], dtype=np.float64)
+        self._frames = int(state["frames"])
+
     def accumulate(self, odo: OdometryResult) -> None:
         """Chain one frame's odometry increment (``odo.T_prev_c`` with ``odo.information``)."""
         self._cov = propagate_covariance(self._T, self._cov, odo.T_prev_c, _covariance(odo.information))

@@ -129,6 +129,16 @@ class KeyframePolicy:
             return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg, overlap {ov:.2f}"
         return False, f"moved {d_t:.3f} m, turned {d_r:.1f} deg"
 
+    def state_dict(self) -> dict:
+        """The last keyframe's index, sub-sampled depth and intrinsics (None before the first), for checkpoints."""
+        last = self._last
+        return {"last": None if last is None else {"index": last.index, "depth": last.depth, "K": last.K}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output."""
+        last = state["last"]
+        self._last = None if last is None else _LastKeyframe(int(last["index"]), last["depth"], last["K"])
+
     def add_keyframe(self, frame_index: int, depth: np.ndarray | None = None, K: np.ndarray | None = None) -> None:
         """Record frame ``frame_index`` as the last keyframe (forced keyframes, or after ``commit=False``)."""
         if depth is not None and K is not None:

@@ -109,6 +109,18 @@ class LoopCloser:
         self._kfs[kf_id] = _StoredKeyframe(view, self._orb(view))
         self._order.append(kf_id)
 
+    def state_dict(self) -> dict:
+        """The stored (down-sampled) keyframes with their ORB descriptors, in order, for checkpoints."""
+        return {"keyframes": [{"id": k, "view": self._kfs[k].view.state(), "orb": self._kfs[k].orb}
+                              for k in self._order]}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output."""
+        self._kfs = {int(s["id"]): _StoredKeyframe(RGBDView.from_state(s["view"]), s["orb"])
+                     for s in state["keyframes"]}
+        self._order = [int(s["id"]) for s in state["keyframes"]]
+        self.rejections = []
+
     def candidates(self, kf_id: int, frame: FrameLike | RGBDView,
                    keyframe_poses: dict[int, np.ndarray]) -> list[tuple[int, float]]:
         """Earlier keyframes passing the pose-proximity and overlap tests: ``[(id, overlap)]``, best first.

@@ -150,6 +150,28 @@ class Odometry:
         self._set_reference(self._last_index, self._last_view, self._T_w_last)
         return True
 
+    def state_dict(self) -> dict:
+        """Everything :meth:`track` depends on (reference and last frame images, poses, failure count) as plain
+        numpy / Python data, for checkpoints; restore with :meth:`load_state_dict`."""
+        last = None if self._last_view is None else ("ref" if self._last_view is self._ref else self._last_view.state())
+        return {"T_w_c0": self._T_w_c0.copy(), "ref": None if self._ref is None else self._ref.state(),
+                "ref_index": self._ref_index, "T_w_ref": self._T_w_ref.copy(), "last_index": self._last_index,
+                "last_view": last, "T_w_last": self._T_w_last.copy(), "T_w_prev": self._T_w_prev.copy(),
+                "failures": self._failures}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output (into an odometry built with the same config and camera)."""
+        self._T_w_c0 = np.asarray(state["T_w_c0"], dtype=np.float64)
+        self._ref = None if state["ref"] is None else RGBDView.from_state(state["ref"])
+        self._ref_index = state["ref_index"]
+        self._T_w_ref = np.asarray(state["T_w_ref"], dtype=np.float64)
+        self._last_index = state["last_index"]
+        last = state["last_view"]
+        self._last_view = self._ref if isinstance(last, str) else None if last is None else RGBDView.from_state(last)
+        self._T_w_last = np.asarray(state["T_w_last"], dtype=np.float64)
+        self._T_w_prev = np.asarray(state["T_w_prev"], dtype=np.float64)
+        self._failures = int(state["failures"])
+
     # -- tracking --------------------------------------------------------------------------------------------
     def track(self, frame: FrameLike) -> OdometryResult:
         """Estimate the pose of ``frame`` (needs ``index``, ``rgb``, ``depth``, ``K``; see module docstring)."""

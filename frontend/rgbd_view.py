@@ -68,6 +68,16 @@ class RGBDView:
             self.cache[key] = build()
         return self.cache[key]
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The images and intrinsics as numpy arrays (the cache is rebuilt on use), for checkpoints."""
+        return {"rgb": self.rgb.copy(), "depth": self.depth.copy(), "K": self.K.copy()}
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray]) -> "RGBDView":
+        """Rebuild a view from :meth:`state`."""
+        return cls(np.ascontiguousarray(state["rgb"], dtype=np.uint8),
+                   np.ascontiguousarray(state["depth"], dtype=np.float32), np.asarray(state["K"], dtype=np.float64))
+
     def downsampled(self, factor: int, max_depth_spread: float = 0.05) -> "RGBDView":
         """A copy ``factor`` times smaller per side: colour and depth averaged over each ``factor`` x ``factor``
         block (depth over its valid pixels; a block spanning a depth edge, valid depths more than

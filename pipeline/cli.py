@@ -74,6 +74,14 @@ def run(
                                                               "run folder (other files in it are kept)."),
     partial_every: Optional[int] = typer.Option(None, "--partial-every", min=1, help="Save trajectory_partial.txt "
                                                 "every N frames during the run (= --set output.partial_every=N)."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="The run's seed: every RNG (Python, numpy, "
+                                       "torch, the field's samplers) (= --set seed=N; default 0)."),
+    deterministic: bool = typer.Option(False, "--deterministic", help="Open3D on one thread, so that runs with the "
+                                       "same seed repeat bit for bit on the CPU (= --set deterministic=true)."),
+    checkpoint_every: Optional[int] = typer.Option(None, "--checkpoint-every", min=0, help="Save checkpoint.pt "
+                                                   "every N keyframes (= --set output.checkpoint_every=N; 0: never)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in OUT from its last checkpoint (same "
+                                "sequence and settings as the run)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads for torch, numba and "
                                           "OpenMP (default: the libraries' own choice, all cores)."),
@@ -82,6 +90,7 @@ def run(
 
     Exit code 0: ok; 2: bad input; 3: the run finished but is degraded (see metrics.json "degraded_reasons").
     ``--set bound=auto`` estimates the scene bound with a fast odometry pre-pass over the sequence.
+    ``--resume`` continues a killed run from OUT/checkpoint.pt: give the same sequence and options as the run.
     """
     from lrslam.pipeline.config_source import default_preset, load_run_config
     from lrslam.pipeline.run import run_sequence
@@ -99,6 +108,14 @@ def run(
     if config is None and path is not None:
         config, why = default_preset(path)
         typer.echo(why)
+    if seed is not None:
+        ov.append(f"seed={seed}")
+    if deterministic:
+        ov.append("deterministic=true")
+    if checkpoint_every is not None:
+        ov.append(f"output.checkpoint_every={checkpoint_every}")
+    if resume and overwrite:
+        raise InputError("--resume continues the run in --out; it cannot be combined with --overwrite")
     loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
     check_run_folder(out, overwrite)
     if demo:
@@ -110,7 +127,8 @@ def run(
             generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
     if path is None:
         raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
-    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets)
+    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets,
+                       resume=resume)
     for line in _summary_lines(res.metrics, Path(out)):
         typer.echo(line)
     if res.metrics.get("status") == "degraded":

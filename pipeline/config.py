@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import Field
+from pydantic import BaseModel, Field, model_validator
 
 from lrslam.config import StrictModel, deep_update
 from lrslam.errors import InputError
@@ -103,12 +103,23 @@ class OutputConfig(StrictModel):
     eval_mesh_points: int = 100_000
     tsdf_voxel: float = Field(0.02, gt=0)  # frontend-mode reference mesh (Open3D TSDF), metres
     partial_every: int = Field(10, ge=1)   # frames between atomic saves of trajectory_partial.txt
+    # keyframes between atomic checkpoints (checkpoint.pt: everything ``lrslam run --resume`` needs); 0 = none
+    checkpoint_every: int = Field(10, ge=0)
 
 
 class RunConfig(StrictModel):
-    """Root config of ``lrslam run``: every section typed by its component's own model."""
+    """Root config of ``lrslam run``: every section typed by its component's own model.
+
+    ``seed``: the run's seed: Python's, numpy's and torch's global RNGs at the start of the run, and the field's
+    own generators (``field.seed``: pixel sampling, jitter, window selection, initial features). The two keys
+    are one setting: given one, the other follows; given both, they must agree (InputError otherwise).
+    ``deterministic``: run Open3D (the frontend's registrations) on one thread: its multi-threaded reductions sum
+    in a schedule-dependent order, and a registration gate decided on the edge turns that into centimetres.
+    With it and a fixed seed, runs on the CPU repeat bit for bit (see :mod:`lrslam.pipeline.determinism`)."""
 
     mode: Literal["field", "frontend", "fused"] = "fused"
+    seed: int = Field(0, ge=0)
+    deterministic: bool = False
     parts: PartsConfig = PartsConfig()
     dataset: DatasetSection = DatasetSection()
     # (3,2) metres, world frame; "auto": from an odometry pre-pass over the sequence; None: from the data, else the
@@ -124,6 +135,25 @@ class RunConfig(StrictModel):
     backend: BackendConfig = BackendConfig()
     schedule: ScheduleConfig = ScheduleConfig()
     output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_seed(cls, data: Any) -> Any:
+        """``seed`` and ``field.seed`` are one setting (see the class docstring)."""
+        if not isinstance(data, dict):
+            return data
+        field = data.get("field")
+        f_seed = field.get("seed") if isinstance(field, dict) else getattr(field, "seed", None)
+        seed = data.get("seed")
+        if seed is not None and f_seed is not None and seed != f_seed:
+            raise ValueError(f"seed {seed} and field.seed {f_seed} disagree (one setting: give seed only)")
+        if seed is None and f_seed is not None:
+            return {**data, "seed": f_seed}
+        if seed is not None and f_seed is None:
+            if isinstance(field, BaseModel):
+                return {**data, "field": field.model_copy(update={"seed": seed})}
+            return {**data, "field": {**(field or {}), "seed": seed}}
+        return data
 
     def reader_options(self):
         from lrslam.frontend.datasets import ReaderOptions
@@ -237,6 +267,11 @@ def build_config(preset: str | None = None, representation: str | None = None, c
     if unknown:
         raise InputError(f"dataset preset {preset!r}: unknown mode(s) under 'modes': {', '.join(unknown)}")
     data = deep_update(deep_update(base, per_mode.get(mode) or {}), later)
+    named = {o.split("=", 1)[0].strip() for o in overrides or []} | {k for k, v in top_level.items() if v is not None}
+    if "seed" in named and "field.seed" not in named:
+        # a seed given on the command line (--seed, --set seed=N) is the run's seed, whatever field.seed a config
+        # file (e.g. a fed-back config.yaml) holds
+        data = deep_update(data, {"field": {"seed": data["seed"]}})
     if mode in MODE_PRESETS:  # an unknown mode is reported by the validation below
         data = deep_update(MODE_PRESETS[mode], data)
     from pydantic import ValidationError

@@ -83,8 +83,18 @@ def _linear_velocity(traj: Trajectory) -> np.ndarray:
     return pose_from_tum(2.0 * p1 - p0)
 
 
+class _Stateless:
+    """A part whose decisions follow from its config and the trajectory alone: nothing to checkpoint."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
 # -------------------------------------------------------------------------------------------------- seeders
-class ConstantVelocitySeeder:
+class ConstantVelocitySeeder(_Stateless):
     """The field-only seed: ``linear`` (ESLAM's linear extrapolation of translation and quaternion) or ``se3``
     (the last relative motion repeated)."""
 
@@ -119,6 +129,12 @@ class OdometrySeeder:
         """The frontend's own pose of the last frame (odometry alone)."""
         return self.odometry.last_pose
 
+    def state_dict(self) -> dict:
+        return self.odometry.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.odometry.load_state_dict(state)
+
 
 # -------------------------------------------------------------------------------------------------- refiners
 class NoRefiner:
@@ -142,7 +158,7 @@ class FieldRefiner:
 
 
 # -------------------------------------------------------------------------------------------------- keyframers
-class EveryNKeyframer:
+class EveryNKeyframer(_Stateless):
     """ESLAM's rule: every ``n``-th frame is a keyframe."""
 
     def __init__(self, n: int) -> None:
@@ -170,6 +186,12 @@ class PolicyKeyframer:
         ok, _ = self.policy.is_keyframe(frame.index, T_w_c, None if last is None else traj.pose(last),
                                         frame.depth, frame.K)
         return bool(ok)
+
+    def state_dict(self) -> dict:
+        return self.policy.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.policy.load_state_dict(state)
 
 
 # -------------------------------------------------------------------------------------------------- mapper
@@ -210,6 +232,22 @@ class GraphBackend:
         self._pose_losses = pose_losses if cfg.loop_field_check else None   # (rgb, depth, [T_w_c]) -> losses
         self._last: int | None = None
         self.n_loops = self.n_solves = self.n_loops_disputed = 0
+
+    def state_dict(self) -> dict:
+        """Factors (plain numpy, :meth:`PoseGraph.state`), the loop closer's keyframes, the frontend's chain since
+        the last keyframe and the counters, for checkpoints. With ``graph.optimiser: isam2`` GTSAM's own
+        linearisation point is not saved: a restored graph re-adds every factor at the next solve."""
+        return {"graph": self.graph.state(), "loop_closer": self.loop_closer.state_dict(),
+                "link": self.link.state_dict(), "last": self._last, "n_loops": self.n_loops,
+                "n_solves": self.n_solves}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output."""
+        self.graph = type(self.graph).from_state(self.graph.cfg, state["graph"])
+        self.loop_closer.load_state_dict(state["loop_closer"])
+        self.link.load_state_dict(state["link"])
+        self._last = state["last"]
+        self.n_loops, self.n_solves = int(state["n_loops"]), int(state["n_solves"])
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
         self.graph.add_keyframe(frame.index, T_w_c0)

@@ -5,7 +5,10 @@ back with ``--config``), ``trajectory.txt`` (TUM, every frame, input timestamps)
 ``trajectory_seed.txt`` (the per-frame seeds: odometry or constant velocity), ``mesh.ply``, ``metrics.json``
 (strict JSON, with ``status: ok | degraded``), ``trajectory.png`` and ``run.log``. While the run is going,
 ``trajectory_partial.txt`` holds the poses tracked so far (rewritten atomically every ``partial_every`` frames
-and on a crash or interrupt; removed on success). See :mod:`lrslam.pipeline.run_folder`.
+and on a crash or interrupt; removed on success), and ``checkpoint.pt`` the run's state every
+``checkpoint_every`` keyframes (removed on success; ``lrslam run --resume`` continues from it: the resumed run
+is the same run, its ``run.log`` continues). See :mod:`lrslam.pipeline.run_folder` and
+:mod:`lrslam.pipeline.checkpoint`.
 """
 
 from __future__ import annotations
@@ -22,7 +25,9 @@ from lrslam.config import save_yaml
 from lrslam.errors import InputError
 from lrslam.jsonio import dumps, json_safe
 from lrslam.pipeline.auto_bound import BoundCoverage, bound_from_frame, bound_from_prepass
+from lrslam.pipeline.checkpoint import CHECKPOINT_NAME, Checkpointer, check_resumable, load_checkpoint
 from lrslam.pipeline.config import RunConfig
+from lrslam.pipeline.determinism import global_rng_state, open3d_threads, seed_everything, set_global_rng_state
 from lrslam.pipeline.provenance import provenance
 from lrslam.pipeline.run_folder import PartialTrajectory, prepare_run_folder
 from lrslam.pipeline.runner import SlamRunner
@@ -42,8 +47,8 @@ class RunResult:
     poses: np.ndarray
 
 
-def _attach_file_log(out_dir: Path) -> logging.Handler:
-    handler = logging.FileHandler(out_dir / "run.log", mode="w")
+def _attach_file_log(out_dir: Path, append: bool = False) -> logging.Handler:
+    handler = logging.FileHandler(out_dir / "run.log", mode="a" if append else "w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     handler.setLevel(logging.INFO)
     root = logging.getLogger("lrslam")
@@ -141,75 +146,155 @@ def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndar
     return safe
 
 
+@dataclass
+class _Progress:
+    """The run's own state besides the runner's: what a checkpoint also needs to continue the run."""
+
+    runner: SlamRunner
+    bound: np.ndarray
+    bound_src: str
+    coverage: BoundCoverage | None
+    frame_seconds: list[float]
+    t_start: float                 # perf_counter origin of the run's wall time (shifted on resume)
+    next_frame: int
+    resumed_at: list[int]
+
+    def state(self, frame: int, settings: dict, timestamps: np.ndarray) -> dict:
+        """The checkpoint after ``frame`` (see :mod:`lrslam.pipeline.checkpoint`)."""
+        return {"frame": frame, "config": settings, "timestamps": timestamps, "bound": self.bound,
+                "bound_source": self.bound_src, "runner": self.runner.checkpoint(), "rng": global_rng_state(),
+                "frame_seconds": np.asarray(self.frame_seconds), "elapsed_s": time.perf_counter() - self.t_start,
+                "coverage_frames": None if self.coverage is None else list(self.coverage.frames),
+                "resumed_at": list(self.resumed_at)}
+
+
+def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False) -> _Progress:
+    """A new run: seed every RNG, choose the bound, build the runner and process the first frame."""
+    seed_everything(cfg.seed)
+    T0 = np.eye(4)
+    if cfg.initial_pose == "gt":
+        if first.T_w_c_gt is not None:
+            T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
+        else:
+            log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
+    bound, bound_src = _choose_bound(cfg, seq, first, T0)
+    log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s, seed %d", path, len(seq), seq.name,
+             np.round(bound, 3).tolist(), bound_src, cfg.mode, cfg.seed)
+    t_start = time.perf_counter()
+    runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
+    _start(runner, first, T0, cfg, progress)
+    coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
+    return _Progress(runner, bound, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
+
+
+def _resumed_run(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Progress:
+    """Continue a run from its checkpoint ``state`` (already checked against the config and sequence)."""
+    bound = np.asarray(state["bound"], dtype=np.float64)
+    runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
+    runner.restore(state["runner"])
+    set_global_rng_state(state["rng"])
+    coverage = None
+    if state["coverage_frames"] is not None:
+        coverage = BoundCoverage(bound)
+        coverage.frames = [int(f) for f in state["coverage_frames"]]
+    frame = int(state["frame"])
+    log.info("resumed from the checkpoint after frame %d (%d keyframes); frames from %d on are processed again",
+             frame, len(runner.traj.keyframe_ids()), frame + 1)
+    return _Progress(runner, bound, str(state["bound_source"]), coverage, [float(x) for x in state["frame_seconds"]],
+                     time.perf_counter() - float(state["elapsed_s"]), frame + 1,
+                     [int(x) for x in state["resumed_at"]] + [frame + 1])
+
+
+def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialTrajectory,
+            checkpoints: Checkpointer, checkpoint_state, out_dir: Path, progress: bool) -> None:
+    """Process frames ``run.next_frame ..`` of ``seq``: step, per-frame bookkeeping, a checkpoint when due
+    (``checkpoint_state(i)`` gives the state after frame i); the partial trajectory is saved on any exception."""
+    from tqdm import tqdm
+
+    runner = run.runner
+    bar = tqdm(range(run.next_frame, len(seq)), desc=f"lrslam {mode}", unit="frame", disable=not progress,
+               initial=run.next_frame, total=len(seq))
+    try:
+        for i in bar:
+            t_frame = time.perf_counter()
+            with timer("io"):
+                frame = seq[i]
+            rec = runner.step(frame)
+            run.frame_seconds.append(time.perf_counter() - t_frame)
+            _after_frame(i, rec, frame, runner, run.coverage, partial)
+            if checkpoints.due(rec.keyframe, len(runner.traj.keyframe_ids())):
+                with timer("checkpoint"):
+                    path = checkpoints.save(checkpoint_state(i))
+                log.info("checkpoint after frame %d: %s (%.1f MB)", i, path, path.stat().st_size / 1e6)
+            if progress and i % 5 == 0:
+                bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
+    except BaseException:
+        _save_partial(out_dir, seq, runner)   # never lose what was tracked before a crash or Ctrl-C
+        raise
+    finally:
+        bar.close()
+
+
 def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True, *,
-                 overwrite: bool = False, presets: dict[str, str | None] | None = None) -> RunResult:
+                 overwrite: bool = False, presets: dict[str, str | None] | None = None,
+                 resume: bool = False) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
     ``out_dir`` must be new, empty or an earlier run folder (any non-empty folder with ``overwrite``); its old
-    outputs are deleted first (``trajectory_partial.txt`` is saved every ``output.partial_every`` frames;
-    ``bound: auto`` estimates the scene bound with an odometry pre-pass). ``presets``: the preset names the
-    config came from, for the provenance record.
+    outputs are deleted first (``trajectory_partial.txt`` is saved every ``output.partial_every`` frames,
+    ``checkpoint.pt`` every ``output.checkpoint_every`` keyframes; ``bound: auto`` estimates the scene bound
+    with an odometry pre-pass). ``resume``: continue the run in ``out_dir`` from its checkpoint instead (same
+    config and sequence, else InputError; ``run.log`` is appended to). ``presets``: the preset names the config
+    came from, for the provenance record.
 
     Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
     ``metrics.json``, with ``status`` "ok" or "degraded").
     """
-    from tqdm import tqdm
-
-    out_dir = prepare_run_folder(Path(out_dir), overwrite)
-    handler = _attach_file_log(out_dir)
+    out_dir = Path(out_dir)
+    if resume and (out_dir / "metrics.json").is_file() and not (out_dir / CHECKPOINT_NAME).exists():
+        raise InputError(f"--resume: {out_dir}: the run there finished (metrics.json); nothing to resume")
+    saved = load_checkpoint(out_dir / CHECKPOINT_NAME) if resume else None
+    if not resume:
+        out_dir = prepare_run_folder(out_dir, overwrite)
+    handler = _attach_file_log(out_dir, append=resume)
     try:
-        seq = _open(path, cfg)
-        save_yaml(out_dir / "config.yaml", _config_record(cfg, seq, provenance(path, seq.name, presets)))
-        first = seq[0]
-        _check_first_frame(seq, first)
-        T0 = np.eye(4)
-        if cfg.initial_pose == "gt":
-            if first.T_w_c_gt is not None:
-                T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
+        with open3d_threads(cfg.deterministic):   # one thread: Open3D repeats bit for bit
+            seq = _open(path, cfg)
+            record = _config_record(cfg, seq, provenance(path, seq.name, presets))
+            settings = {k: v for k, v in record.items() if k != "provenance"}
+            timestamps = np.asarray(seq.timestamps, dtype=np.float64)
+            if saved is not None:
+                check_resumable(out_dir / CHECKPOINT_NAME, saved, settings, timestamps)
             else:
-                log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
-        bound, bound_src = _choose_bound(cfg, seq, first, T0)
-        log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s", path, len(seq), seq.name,
-                 np.round(bound, 3).tolist(), bound_src, cfg.mode)
+                save_yaml(out_dir / "config.yaml", record)
+            first = seq[0]
+            _check_first_frame(seq, first)
+            timer = StageTimer()
+            if saved is not None:
+                run = _resumed_run(cfg, first, timer, saved)
+            else:
+                run = _new_run(path, cfg, seq, first, timer, progress)
+            partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
+            checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
+            _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps),
+                    out_dir, progress)
+            wall = time.perf_counter() - run.t_start   # tracking and mapping; the mesh is timed as its own stage
+            result = run.runner.finish(mesh=cfg.output.mesh, mesh_resolution=cfg.output.mesh_resolution)
+            poses = result.poses
+            timestamps = timestamps[: len(poses)]
 
-        timer = StageTimer()
-        t_start = time.perf_counter()
-        runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
-        _start(runner, first, T0, cfg, progress)
-        frame_seconds = [time.perf_counter() - t_start]
-        coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
-        partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
-        bar = tqdm(range(1, len(seq)), desc=f"lrslam {cfg.mode}", unit="frame", disable=not progress,
-                   initial=1, total=len(seq))
-        try:
-            for i in bar:
-                t_frame = time.perf_counter()
-                with timer("io"):
-                    frame = seq[i]
-                rec = runner.step(frame)
-                frame_seconds.append(time.perf_counter() - t_frame)
-                _after_frame(i, rec, frame, runner, coverage, partial)
-                if progress and i % 5 == 0:
-                    bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
-        except BaseException:
-            _save_partial(out_dir, seq, runner)   # never lose what was tracked before a crash or Ctrl-C
-            raise
-        finally:
-            bar.close()
-        wall = time.perf_counter() - t_start   # tracking and mapping; the mesh is timed as its own stage
-        result = runner.finish(mesh=cfg.output.mesh, mesh_resolution=cfg.output.mesh_resolution)
-        poses = result.poses
-        timestamps = np.asarray(seq.timestamps, dtype=np.float64)[: len(poses)]
+            # outputs
+            from lrslam.pipeline.outputs import write_outputs
 
-        # outputs
-        from lrslam.pipeline.outputs import write_outputs
-
-        metrics = write_outputs(out_dir, cfg, seq, result, timestamps, timer, wall, bound, bound_src, progress,
-                                np.asarray(frame_seconds))
-        metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
-        metrics = _finish(out_dir, metrics, seq, poses, bound, cfg.mode, coverage)
-        partial.remove()
-        return RunResult(out_dir, metrics, timestamps, poses)
+            metrics = write_outputs(out_dir, cfg, seq, result, timestamps, timer, wall, run.bound, run.bound_src,
+                                    progress, np.asarray(run.frame_seconds))
+            metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
+            if run.resumed_at:
+                metrics["resumed_at_frames"] = run.resumed_at
+            metrics = _finish(out_dir, metrics, seq, poses, run.bound, cfg.mode, run.coverage)
+            partial.remove()
+            checkpoints.remove()
+            return RunResult(out_dir, metrics, timestamps, poses)
     finally:
         logging.getLogger("lrslam").removeHandler(handler)
         handler.close()

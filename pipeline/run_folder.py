@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from lrslam.errors import InputError
+from lrslam.pipeline.checkpoint import CHECKPOINT_NAME, CHECKPOINT_TMP
 from lrslam.trajectory_io import write_tum
 
 __all__ = ["RUN_OUTPUTS", "check_output_folder", "check_run_folder", "prepare_run_folder", "PartialTrajectory",
@@ -27,7 +28,7 @@ PARTIAL_NAME = "trajectory_partial.txt"
 _PARTIAL_TMP = ".trajectory_partial.txt.tmp"
 # Every file a run writes (trajectory_*.txt covers the seed and partial trajectories).
 RUN_OUTPUTS = ("config.yaml", "trajectory.txt", "keyframes.txt", "metrics.json", "mesh.ply", "trajectory.png",
-               "run.log", _PARTIAL_TMP)
+               "run.log", _PARTIAL_TMP, CHECKPOINT_NAME, CHECKPOINT_TMP)
 _OUTPUT_GLOBS = ("trajectory_*.txt",)
 _KEPT = ("sequence",)  # ``lrslam run --demo`` generates its sequence inside the run folder
 

@@ -15,7 +15,7 @@ pose is passed in by the caller. :meth:`SlamRunner.finish` returns a frozen :cla
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field as dc_field
+from dataclasses import asdict, dataclass, field as dc_field
 
 import numpy as np
 
@@ -184,6 +184,42 @@ class SlamRunner:
             self._frontend.append(frontend())
         self._records.append(rec)
         return rec
+
+    # ------------------------------------------------------------------------------------------------ state
+    def checkpoint(self) -> dict:
+        """The run state after the last processed frame, as plain Python / numpy data (torch's tensors stay in
+        the field's own arrays): trajectory, every part's state, per-frame records, counters and stage timer.
+        :meth:`restore` on a runner built from the same config and camera continues exactly from here."""
+        p = self.parts
+        return {
+            "trajectory": self.traj.state_dict(),
+            "seeder": p.seeder.state_dict(), "keyframer": p.keyframer.state_dict(),
+            "field": p.field.state_dict() if p.field is not None else None,
+            "backend": p.backend.state_dict() if p.backend is not None else None,
+            "seeds": np.stack(self._seeds) if self._seeds else np.zeros((0, 4, 4)),
+            "frontend": np.stack(self._frontend) if self._frontend else None,
+            "records": [asdict(r) for r in self._records],
+            "n_remaps": self.n_remaps, "timer": self.timer.state_dict(),
+        }
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`checkpoint` output (instead of :meth:`start`)."""
+        p = self.parts
+        if (state["field"] is None) != (p.field is None) or (state["backend"] is None) != (p.backend is None):
+            raise InputError("checkpoint: it was saved by a runner built from other parts")
+        self.traj.load_state_dict(state["trajectory"])
+        p.seeder.load_state_dict(state["seeder"])
+        p.keyframer.load_state_dict(state["keyframer"])
+        if p.field is not None:
+            p.field.load_state_dict(state["field"])
+        if p.backend is not None:
+            p.backend.load_state_dict(state["backend"])
+        self._seeds = [np.asarray(T, dtype=np.float64) for T in state["seeds"]]
+        self._frontend = [] if state["frontend"] is None else [np.asarray(T, dtype=np.float64)
+                                                               for T in state["frontend"]]
+        self._records = [FrameRecord(**r) for r in state["records"]]
+        self.n_remaps = int(state["n_remaps"])
+        self.timer.load_state_dict(state["timer"])
 
     # ------------------------------------------------------------------------------------------------ results
     def poses(self) -> np.ndarray:

@@ -25,6 +25,15 @@ class StageTimer:
             self.seconds[stage] += time.perf_counter() - t0
             self.calls[stage] += 1
 
+    def state_dict(self) -> dict:
+        """Seconds and calls so far, for checkpoints."""
+        return {"seconds": dict(self.seconds), "calls": dict(self.calls)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output (replaces the totals)."""
+        self.seconds = defaultdict(float, state["seconds"])
+        self.calls = defaultdict(int, state["calls"])
+
     def summary(self, n_frames: int) -> dict[str, dict[str, float]]:
         """``{stage: {total_s, calls, per_frame_s}}`` with per-frame = total / n_frames."""
         n = max(n_frames, 1)

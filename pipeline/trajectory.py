@@ -93,6 +93,18 @@ class Trajectory:
     def last_keyframe(self) -> int | None:
         return self._last_kf
 
+    def state_dict(self) -> dict:
+        """Keyframe poses, per-frame anchors and relative poses, for checkpoints (:meth:`load_state_dict`)."""
+        return {"kf": {k: v.copy() for k, v in self._kf.items()}, "anchor": list(self._anchor),
+                "rel": np.stack(self._rel) if self._rel else np.zeros((0, 4, 4)), "last_kf": self._last_kf}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output (replaces every pose)."""
+        self._kf = {int(k): np.asarray(v, dtype=np.float64) for k, v in state["kf"].items()}
+        self._anchor = [None if a is None else int(a) for a in state["anchor"]]
+        self._rel = [np.asarray(T, dtype=np.float64) for T in state["rel"]]
+        self._last_kf = state["last_kf"]
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """``{keyframe index: T_w_kf}`` (copies), in index order."""
         return {k: v.copy() for k, v in sorted(self._kf.items())}
