@@ -239,7 +239,7 @@ class GraphBackend:
         linearisation point is not saved: a restored graph re-adds every factor at the next solve."""
         return {"graph": self.graph.state(), "loop_closer": self.loop_closer.state_dict(),
                 "link": self.link.state_dict(), "last": self._last, "n_loops": self.n_loops,
-                "n_solves": self.n_solves}
+                "n_solves": self.n_solves, "n_loops_disputed": self.n_loops_disputed}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` output."""
@@ -248,6 +248,7 @@ class GraphBackend:
         self.link.load_state_dict(state["link"])
         self._last = state["last"]
         self.n_loops, self.n_solves = int(state["n_loops"]), int(state["n_solves"])
+        self.n_loops_disputed = int(state["n_loops_disputed"])
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
         self.graph.add_keyframe(frame.index, T_w_c0)
