@@ -85,8 +85,7 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         InputError: images of the wrong shape/dtype (a programming error, not a bad frame).
     """
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
-    if cfg.n_stratified is not None:
-        render = render.model_copy(update={"n_stratified": cfg.n_stratified})
+    render = _tracking_render(cfg, render)
     T_seed = np.asarray(T_w_c_init, dtype=np.float64)
     if not is_valid_pose(T_seed):
         return _fail(np.eye(4) if T_seed.shape != (4, 4) else T_seed, "seed pose is not a finite rigid transform")
@@ -182,8 +181,7 @@ def pose_losses(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.nda
     ``poses`` ((4, 4) ``T_w_c`` each), on the same fixed rays without jitter (``check_rays`` of them): which
     pose does the frozen field support? NaN for a pose with too few usable rays."""
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
-    if cfg.n_stratified is not None:
-        render = render.model_copy(update={"n_stratified": cfg.n_stratified})
+    render = _tracking_render(cfg, render)
     h, w = np.asarray(depth).shape[:2]
     rgb_t, depth_t = image_tensors(rgb, depth, h, w, model.device)
     Kt = torch.tensor(K, dtype=torch.float32, device=model.device)
@@ -193,6 +191,13 @@ def pose_losses(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.nda
             return [float("nan")] * len(poses)
         return [_fixed_ray_loss(model, batch, dirs_c, np.asarray(T, dtype=np.float64), cfg, render)[0]
                 for T in poses]
+
+
+def _tracking_render(cfg: TrackerConfig, render: RenderConfig) -> RenderConfig:
+    """The render settings tracking uses: ``render`` with ``cfg.n_stratified`` free-space samples when set."""
+    if cfg.n_stratified is None:
+        return render
+    return render.model_copy(update={"n_stratified": cfg.n_stratified})
 
 
 def keep_refinement(loss_seed: float, loss_refined: float, cfg: TrackerConfig) -> bool:
