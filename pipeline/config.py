@@ -40,14 +40,21 @@ class DatasetSection(StrictModel):
 
 
 class ScheduleConfig(StrictModel):
-    """When mapping and keyframing happen (ESLAM: map every 4 frames, a keyframe every 4-5), and how the
-    constant-velocity seeder extrapolates."""
+    """When mapping and keyframing happen (ESLAM: map every 4 frames, a keyframe every 4-5), how the
+    constant-velocity seeder extrapolates, and when the field arbitrates between the odometry's seed and the
+    constant-velocity guess."""
 
     map_every: int = Field(4, gt=0, description="map every N frames (and at every keyframe)")
     keyframe_every: int = Field(4, gt=0, description="keyframer every_n: every N-th frame is a keyframe")
     velocity_model: Literal["linear", "se3"] = Field(
         "linear", description="constant-velocity seeder: ESLAM's linear extrapolation of (t, q), or the last "
         "relative motion repeated on SE(3)")
+    seed_arbitration: bool = Field(
+        True, description="odometry seeder with a field refiner: when the odometry's seed and the constant-velocity "
+        "guess disagree by more than seed_disagreement_m or _deg, the field starts from the one whose tracking "
+        "loss is lower on the same rays (a broken odometry step no longer drags the refinement out of its basin)")
+    seed_disagreement_m: float = Field(0.02, ge=0, description="metres, see seed_arbitration")
+    seed_disagreement_deg: float = Field(2.0, ge=0, description="degrees, see seed_arbitration")
 
 
 class PartsConfig(StrictModel):

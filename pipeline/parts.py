@@ -19,7 +19,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from lrslam.frontend.frame import Frame
-from lrslam.geometry import diagonal_information, inv, pose_from_tum, pose_to_tum
+from lrslam.geometry import diagonal_information, inv, pose_error, pose_from_tum, pose_to_tum
 from lrslam.pipeline.config import BackendConfig, RunConfig
 from lrslam.pipeline.trajectory import Trajectory
 
@@ -32,19 +32,22 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Seed:
     """A frame's starting pose ``T_w_c`` (4, 4); ``ok`` False when the seeder fell back to a guess;
-    ``odometry``: the frontend's result for the frame (None without one)."""
+    ``odometry``: the frontend's result for the frame (None without one); ``alternatives``: other starting
+    poses (4, 4) worth comparing with ``T_w_c`` by the field (a refiner picks the one it fits best)."""
 
     T_w_c: np.ndarray
     ok: bool = True
     odometry: object | None = None
     note: str = ""
+    alternatives: tuple[np.ndarray, ...] = ()
 
 
 @dataclass(frozen=True)
 class Refinement:
-    """The refined pose ``T_w_c`` (4, 4) (the seed when not ``ok`` or not ``accepted``); ``information`` (6, 6)
-    of it given the field (None without one); ``ok`` None when there is no refiner; ``iters`` tracking
-    iterations run."""
+    """The refined pose ``T_w_c`` (4, 4) (the starting pose when not ``ok`` or not ``accepted``);
+    ``information`` (6, 6) of it given the field (None without one); ``ok`` None when there is no refiner;
+    ``iters`` tracking iterations run; ``start``: which candidate the refinement started from (0 = the seed's
+    ``T_w_c``, k = its ``alternatives[k - 1]``)."""
 
     T_w_c: np.ndarray
     ok: bool | None = None
@@ -52,6 +55,7 @@ class Refinement:
     information: np.ndarray | None = None
     note: str = ""
     iters: int = 0
+    start: int = 0
 
 
 @dataclass(frozen=True)
@@ -110,10 +114,15 @@ class ConstantVelocitySeeder(_Stateless):
 
 class OdometrySeeder:
     """The frontend's frame-to-frame motion (:class:`lrslam.frontend.odometry.Odometry`, its own estimate)
-    applied to the trajectory's last pose; constant velocity when the odometry failed."""
+    applied to the trajectory's last pose; constant velocity when the odometry failed.
 
-    def __init__(self, odometry) -> None:
+    ``disagreement``: (metres, degrees), or None. When given and the odometry's seed and the constant-velocity
+    guess differ by more than either, the guess goes along as an alternative for the refiner to judge (a
+    registration that passed its gates can still be wrong by centimetres at large motion)."""
+
+    def __init__(self, odometry, disagreement: tuple[float, float] | None = None) -> None:
         self.odometry = odometry
+        self.disagreement = disagreement
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
         self.odometry.reset(T_w_c0, frame)
@@ -121,7 +130,13 @@ class OdometrySeeder:
     def seed(self, frame: Frame, traj: Trajectory) -> Seed:
         res = self.odometry.track(frame)
         if res.ok:
-            return Seed(traj.pose(-1) @ res.T_prev_c, True, res)
+            T = traj.pose(-1) @ res.T_prev_c
+            if self.disagreement is not None and len(traj) >= 2:
+                guess = _constant_velocity(traj)
+                d_t, d_r = pose_error(T, guess)
+                if d_t > self.disagreement[0] or d_r > self.disagreement[1]:
+                    return Seed(T, True, res, alternatives=(guess,))
+            return Seed(T, True, res)
         log.info("frame %d: odometry failed (%s); constant-velocity seed", frame.index, res.reason)
         return Seed(_constant_velocity(traj), False, res, f"odometry failed: {res.reason}")
 
@@ -150,11 +165,28 @@ class FieldRefiner:
         self.field = field
 
     def refine(self, frame: Frame, seed: Seed) -> Refinement:
-        res = self.field.track(frame.rgb, frame.depth, seed.T_w_c)
+        start, note = self._start(frame, seed)
+        T0 = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
+        res = self.field.track(frame.rgb, frame.depth, T0)
         if not res.ok:
-            return Refinement(seed.T_w_c, False, False, None, f"field tracking fell back to the seed: {res.reason}",
-                              res.iters)
-        return Refinement(res.T_w_c, True, res.accepted, res.information, res.reason, res.iters)
+            return Refinement(T0, False, False, None, f"field tracking fell back to the seed: {res.reason}",
+                              res.iters, start)
+        return Refinement(res.T_w_c, True, res.accepted, res.information, "; ".join(x for x in (note, res.reason) if x),
+                          res.iters, start)
+
+    def _start(self, frame: Frame, seed: Seed) -> tuple[int, str]:
+        """Which candidate to refine from: the seed, or the alternative whose tracking loss on the same rays is
+        lower (a non-finite loss never wins)."""
+        if not seed.alternatives:
+            return 0, ""
+        losses = np.asarray(self.field.pose_losses(frame.rgb, frame.depth, [seed.T_w_c, *seed.alternatives]))
+        losses = np.where(np.isfinite(losses), losses, np.inf)
+        k = int(np.argmin(losses))
+        if k == 0 or not np.isfinite(losses[k]) or not losses[k] < losses[0]:
+            return 0, ""
+        log.info("frame %d: the field prefers the constant-velocity guess to the odometry's seed (loss %.4g vs "
+                 "%.4g)", frame.index, losses[k], losses[0])
+        return k, f"started from the constant-velocity guess (loss {losses[k]:.4g} vs {losses[0]:.4g})"
 
 
 # -------------------------------------------------------------------------------------------------- keyframers
@@ -341,7 +373,10 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
     if p.seeder == "odometry":
         from lrslam.frontend.odometry import Odometry
 
-        seeder = OdometrySeeder(Odometry(cfg.odometry, K, height, width))
+        sc = cfg.schedule
+        arbitrate = field is not None and sc.seed_arbitration
+        seeder = OdometrySeeder(Odometry(cfg.odometry, K, height, width),
+                                (sc.seed_disagreement_m, sc.seed_disagreement_deg) if arbitrate else None)
     else:
         seeder = ConstantVelocitySeeder(cfg.schedule.velocity_model)
     refiner = FieldRefiner(field) if field is not None else NoRefiner()

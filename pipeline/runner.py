@@ -40,6 +40,7 @@ class FrameRecord:
     refine_ok: bool | None = None
     refine_accepted: bool = False
     refine_iters: int = 0
+    refine_start: int = 0
     has_depth: bool = True
     keyframe: bool = False
     loops: int = 0
@@ -137,7 +138,7 @@ class SlamRunner:
             with self.timer("refine"):
                 ref = p.refiner.refine(frame, seed)
             rec.refine_ok, rec.refine_accepted, information = ref.ok, ref.accepted, ref.information
-            rec.refine_iters = ref.iters
+            rec.refine_iters, rec.refine_start = ref.iters, ref.start
             T = ref.T_w_c
             if ref.note:
                 rec.notes.append(ref.note)
@@ -244,6 +245,7 @@ class SlamRunner:
             "refinements_rejected": sum(r.refine_ok is True and not r.refine_accepted for r in recs),
             "frames_without_depth": sum(not r.has_depth for r in recs),
             "mapping_poses_reverted": p.field.reverted_poses if p.field is not None else 0,
+            "seeds_overruled_by_field": sum(r.refine_start > 0 for r in recs),
             "refine_iters_mean": float(np.mean([r.refine_iters for r in recs if r.refine_ok is not None] or [0])),
         }
         return SlamResult(

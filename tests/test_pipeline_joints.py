@@ -129,6 +129,10 @@ def test_modes_are_presets_of_one_factory():
     assert kinds["field"] == (ConstantVelocitySeeder, "FieldRefiner", EveryNKeyframer, True, False)
     assert kinds["frontend"] == (OdometrySeeder, NoRefiner.__name__, PolicyKeyframer, False, False)
     assert kinds["fused"] == (OdometrySeeder, "FieldRefiner", PolicyKeyframer, True, True)
+    # the field arbitrates between seeds only where it refines them
+    assert build_parts(build_config(mode="frontend"), K, 48, 64, bound).seeder.disagreement is None
+    fused = build_config(mode="fused", overrides=["field.device=cpu"])
+    assert build_parts(fused, K, 48, 64, bound).seeder.disagreement == (0.02, 2.0)
     # a fourth combination costs one override, not a branch in the loop
     cfg = build_config(mode="fused", overrides=["parts.backend=none", "field.device=cpu"])
     assert build_parts(cfg, K, 48, 64, bound).backend is None
@@ -237,3 +241,59 @@ def test_a_loop_correction_the_map_disputes_is_dropped():
     assert asked == [2] and backend.n_loops_disputed == 1 and backend.n_loops == 1 and not corr.solved
     backend, corr = run(map_prefers_loop=True)
     assert backend.n_loops_disputed == 0 and backend.n_loops == 2 and corr.solved
+
+
+def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
+    """``schedule.seed_arbitration``: an odometry seed that disagrees with the constant-velocity guess (beyond
+    the thresholds) carries the guess along; the field refiner starts from whichever it fits better on the same
+    rays (a non-finite loss never wins); an agreeing seed carries nothing and costs no extra render."""
+    from lrslam.frontend.odometry import OdometryResult
+    from lrslam.pipeline.parts import FieldRefiner
+    from lrslam.pipeline.trajectory import Trajectory
+
+    class _Odometry:
+        def __init__(self, T_prev_c):
+            self.T = T_prev_c
+
+        def track(self, frame):
+            return OdometryResult(frame.index, np.eye(4), self.T, frame.index - 1, INFO, True, 1.0, 0.0, "", self.T)
+
+    class _Field:
+        def __init__(self, losses):
+            self.losses, self.asked, self.started = losses, [], None
+
+        def pose_losses(self, rgb, depth, poses):
+            self.asked.append([np.array(T) for T in poses])
+            return self.losses
+
+        def track(self, rgb, depth, T0):
+            from lrslam.field.tracker import TrackResult
+
+            self.started = np.array(T0)
+            return TrackResult(T0, True, 1.0, 1.0, 3, accepted=True)
+
+    traj = Trajectory()
+    step = make_pose(np.eye(3), [0.05, 0.0, 0.0])
+    traj.add(np.eye(4), is_keyframe=True)
+    traj.add(step)
+    guess = step @ step                                       # constant velocity: another 5 cm along x
+    agree = OdometrySeeder(_Odometry(make_pose(np.eye(3), [0.06, 0.0, 0.0])), (0.02, 2.0)).seed(_frame(2), traj)
+    assert agree.alternatives == ()
+    broken = make_pose(np.eye(3), [0.05, 0.08, 0.0])          # 8 cm off the guess
+    seed = OdometrySeeder(_Odometry(broken), (0.02, 2.0)).seed(_frame(2), traj)
+    np.testing.assert_allclose(seed.T_w_c, step @ broken, atol=1e-12)
+    assert len(seed.alternatives) == 1
+    np.testing.assert_allclose(seed.alternatives[0], guess, atol=1e-12)
+    assert OdometrySeeder(_Odometry(broken), None).seed(_frame(2), traj).alternatives == ()   # arbitration off
+
+    for losses, start in (([1.0, 0.5], 1), ([1.0, 2.0], 0), ([float("nan"), 0.5], 1), ([1.0, float("nan")], 0),
+                          ([1.0, 1.0], 0)):
+        field = _Field(losses)
+        ref = FieldRefiner(field).refine(_frame(2), seed)
+        assert ref.start == start, losses
+        np.testing.assert_allclose(field.started, guess if start else seed.T_w_c, atol=1e-12)
+        np.testing.assert_allclose(ref.T_w_c, field.started, atol=1e-12)
+        assert len(field.asked) == 1 and len(field.asked[0]) == 2
+    field = _Field([1.0, 0.5])
+    FieldRefiner(field).refine(_frame(2), agree)
+    assert field.asked == []                                  # no alternative: no extra render
