@@ -113,6 +113,7 @@ def paired_ratio(seq: Path, preset: str, stride: int, frames: int, overrides: li
     in lockstep (each frame: LRSLAM's step, then ESLAM's), so speed drift of the machine hits both alike."""
     from lrslam.frontend.datasets import open_sequence
     from lrslam.pipeline.config import build_config
+    from lrslam.pipeline.run import choose_bound
     from lrslam.pipeline.runner import SlamRunner
 
     ov = overrides + [f"dataset.options.max_frames={frames * stride}"] + (
@@ -122,7 +123,7 @@ def paired_ratio(seq: Path, preset: str, stride: int, frames: int, overrides: li
     seq = open_sequence(seq, reader=cfg0.dataset.reader, options=cfg0.reader_options())
     first = seq[0]
     T0 = first.T_w_c_gt if first.T_w_c_gt is not None else np.eye(4)
-    bound = np.asarray(cfg0.bound if isinstance(cfg0.bound, list) else seq.bound, dtype=np.float64)
+    bound, _ = choose_bound(cfg0, seq, first, T0)
     runners, secs = {}, {r: [] for r in cfgs}
     for r, cfg in cfgs.items():
         t0 = time.perf_counter()

@@ -34,7 +34,7 @@ from lrslam.pipeline.runner import SlamRunner
 from lrslam.pipeline.sanity import run_status
 from lrslam.pipeline.timing import StageTimer
 
-__all__ = ["run_sequence", "RunResult"]
+__all__ = ["run_sequence", "RunResult", "choose_bound"]
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,9 @@ def _open(path: str | Path, cfg: RunConfig):
     return seq
 
 
-def _choose_bound(cfg: RunConfig, seq, first, T0) -> tuple[np.ndarray, str]:
+def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray) -> tuple[np.ndarray, str]:
+    """The field's scene bound (3, 2) in metres (world frame) and where it came from: the config's ``bound``
+    (``auto``: an odometry pre-pass), else the dataset's, else the first frame's points (``T0``: its pose)."""
     if cfg.bound == "auto":
         b, src = bound_from_prepass(seq, cfg.odometry, T0), "auto (pre-pass)"
     elif cfg.bound is not None:
@@ -177,7 +179,7 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
             T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
         else:
             log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
-    bound, bound_src = _choose_bound(cfg, seq, first, T0)
+    bound, bound_src = choose_bound(cfg, seq, first, T0)
     log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s, seed %d", path, len(seq), seq.name,
              np.round(bound, 3).tolist(), bound_src, cfg.mode, cfg.seed)
     t_start = time.perf_counter()
