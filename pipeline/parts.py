@@ -169,10 +169,10 @@ class FieldRefiner:
         T0 = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
         res = self.field.track(frame.rgb, frame.depth, T0)
         if not res.ok:
-            return Refinement(T0, False, False, None, f"field tracking fell back to the seed: {res.reason}",
+            return Refinement(T0, False, False, None, f"field tracking fell back to its starting pose: {res.reason}",
                               res.iters, start)
-        return Refinement(res.T_w_c, True, res.accepted, res.information, "; ".join(x for x in (note, res.reason) if x),
-                          res.iters, start)
+        reason = "; ".join(x for x in (note, res.reason) if x)
+        return Refinement(res.T_w_c, True, res.accepted, res.information, reason, res.iters, start)
 
     def _start(self, frame: Frame, seed: Seed) -> tuple[int, str]:
         """Which candidate to refine from: the seed, or the alternative whose tracking loss on the same rays is

@@ -1,7 +1,8 @@
 """One SLAM loop built from parts (:mod:`lrslam.pipeline.parts`), read as numbered steps per frame:
 
 1. seed     — constant velocity (ESLAM) or the frontend's odometry
-2. refine   — LRSLAM field tracking by rendering loss from the seed (kept only where it is better, when asked)
+2. refine   — LRSLAM field tracking by rendering loss from the seed (or from the constant-velocity guess when the
+               two disagree and the field fits the guess better), kept only where it is better, when asked
 3. keyframe — every N frames (ESLAM) or the motion / overlap policy
 4. map      — joint field + window-pose optimisation; the refined poses go back into the trajectory
 5. graph    — keyframe node + frontend, field and loop factors; solved when a loop brings a real correction
