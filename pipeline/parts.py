@@ -176,13 +176,14 @@ class FieldRefiner:
 
     def _start(self, frame: Frame, seed: Seed) -> tuple[int, str]:
         """Which candidate to refine from: the seed, or the alternative whose tracking loss on the same rays is
-        lower (a non-finite loss never wins)."""
+        strictly lower (a non-finite loss counts as infinite and never wins; a tie keeps the seed, as argmin
+        returns the first minimum)."""
         if not seed.alternatives:
             return 0, ""
         losses = np.asarray(self.field.pose_losses(frame.rgb, frame.depth, [seed.T_w_c, *seed.alternatives]))
         losses = np.where(np.isfinite(losses), losses, np.inf)
         k = int(np.argmin(losses))
-        if k == 0 or not np.isfinite(losses[k]) or not losses[k] < losses[0]:
+        if k == 0:
             return 0, ""
         log.info("frame %d: the field prefers the constant-velocity guess to the odometry's seed (loss %.4g vs "
                  "%.4g)", frame.index, losses[k], losses[0])
