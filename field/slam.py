@@ -14,6 +14,7 @@ import logging
 import numpy as np
 import torch
 
+from lrslam.field.background import BackgroundMapping
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.camera import check_intrinsics
 from lrslam.errors import InputError
@@ -55,6 +56,15 @@ class FieldSLAM:
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.mapper = Mapper(self.model, self.K, self.height, self.width, cfg.mapping, cfg.render, self.gen, cfg.seed)
         self.initialised = False
+        self.background: BackgroundMapping | None = None
+
+    def start_background_mapping(self) -> None:
+        """From now on :meth:`map_in_background` runs mapping rounds in a worker thread while :meth:`track` and
+        :meth:`pose_losses` read a frozen copy of the field, refreshed when a round's result is taken
+        (:meth:`take_mapped`); see :mod:`lrslam.field.background`. Call after :meth:`initialise`."""
+        self._require_init()
+        if self.background is None:
+            self.background = BackgroundMapping(self.model, self.cfg.seed)
 
     # ------------------------------------------------------------------------------------------ SLAM steps
     def initialise(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
@@ -74,13 +84,20 @@ class FieldSLAM:
     def track(self, rgb: np.ndarray, depth: np.ndarray, T_w_c_init: np.ndarray) -> TrackResult:
         """Refine a seed pose against the frozen field (never raises for a bad frame: ``ok`` False, seed kept)."""
         self._require_init()
-        return track(self.model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, self.gen)
+        model, gen = self._tracking_model()
+        return track(model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, gen)
 
     def pose_losses(self, rgb: np.ndarray, depth: np.ndarray, poses: list[np.ndarray]) -> list[float]:
         """The frame's tracking loss at each candidate pose ``T_w_c`` on the same rays (lower: the map agrees
         better); see :func:`lrslam.field.tracker.pose_losses`."""
         self._require_init()
-        return pose_losses(self.model, rgb, depth, self.K, poses, self.cfg.tracking, self.cfg.render, self.gen)
+        model, gen = self._tracking_model()
+        return pose_losses(model, rgb, depth, self.K, poses, self.cfg.tracking, self.cfg.render, gen)
+
+    def _tracking_model(self):
+        if self.background is not None:
+            return self.background.tracking_model, self.background.tracking_gen
+        return self.model, self.gen
 
     def map(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
             keyframe_poses: dict[int, np.ndarray], add_keyframe: bool) -> dict[int, np.ndarray]:
@@ -100,8 +117,35 @@ class FieldSLAM:
                                         depth_t.cpu().numpy())
         return poses
 
+    def map_in_background(self, frame_id: int, rgb: np.ndarray, depth: np.ndarray, T_w_c: np.ndarray,
+                          keyframe_poses: dict[int, np.ndarray], add_keyframe: bool) -> None:
+        """:meth:`map` in the worker thread (after :meth:`start_background_mapping`); its result comes from
+        :meth:`take_mapped`, which must be called before the next round."""
+        if self.background is None:
+            raise RuntimeError("FieldSLAM.start_background_mapping() was not called")
+        kf = {k: np.array(T, dtype=np.float64) for k, T in keyframe_poses.items()}
+        T, rgb, depth = np.array(T_w_c, dtype=np.float64), np.array(rgb), np.array(depth)
+        self.background.submit(lambda: self.map(frame_id, rgb, depth, T, kf, add_keyframe))
+
+    def take_mapped(self) -> dict[int, np.ndarray] | None:
+        """Wait for the background round and return its optimised poses (as :meth:`map`; None when no round
+        was submitted); the tracker sees the mapped field from now on."""
+        return None if self.background is None else self.background.take()
+
+    def stop_background_mapping(self) -> None:
+        """Stop the worker thread (a round's result not yet taken is dropped): tracking reads the field again."""
+        if self.background is not None:
+            self.background.close()
+            self.background = None
+
+    def _idle(self) -> None:
+        """Wait for a running background round (its result stays to be taken)."""
+        if self.background is not None:
+            self.background.wait()
+
     def keyframe_ids(self) -> list[int]:
         """Frame ids of the stored keyframes (pixels), in insertion order."""
+        self._idle()
         return self.mapper.keyframes.ids()
 
     @property
@@ -112,13 +156,16 @@ class FieldSLAM:
     def remap(self, keyframe_poses: dict[int, np.ndarray], keyframe_ids: list[int] | None = None,
               iters: int | None = None) -> dict:
         """Field-only re-optimisation with the keyframes fixed at ``keyframe_poses`` (e.g. after a pose-graph
-        correction), over ``keyframe_ids`` (None = all)."""
+        correction), over ``keyframe_ids`` (None = all). A background round's result must have been taken."""
         self._require_init()
+        if self.background is not None and self.background.busy:
+            raise RuntimeError("FieldSLAM.remap: take_mapped() the background round first")
         return self.mapper.remap({k: self._pose(T) for k, T in keyframe_poses.items()}, keyframe_ids, iters)
 
     def extract_mesh(self, keyframe_poses: dict[int, np.ndarray], resolution: float | None = None):
         """Marching-cubes mesh of the field (world metres, vertex colours), culled to what the keyframes (at
         ``keyframe_poses``) saw."""
+        self._idle()
         ids = [k for k in self.mapper.keyframes.ids() if k in keyframe_poses]
         views = [self.mapper.keyframes.get(k) for k in ids]
         poses = [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids]
@@ -130,6 +177,7 @@ class FieldSLAM:
         keyframes (None = all) at ``keyframe_poses``: how well the surface agrees with those poses."""
         from lrslam.field.mapper import depth_error
 
+        self._idle()
         ids = [k for k in (keyframe_ids or self.mapper.keyframes.ids()) if k in keyframe_poses]
         return depth_error(self.model, [self.mapper.keyframes.get(k) for k in ids],
                            [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids], self.K, self.cfg.render,
@@ -144,8 +192,12 @@ class FieldSLAM:
     def state_dict(self) -> dict:
         """Run state as plain Python/numpy: config, bound, intrinsics, field tensors (decoders, beta included),
         keyframe pixels (poses belong to the trajectory), RNG states and the mapper's counter. No optimiser state:
-        every mapping round and tracking call starts its own Adam (as ESLAM). Restore with :meth:`load_state_dict`."""
+        every mapping round and tracking call starts its own Adam (as ESLAM). With background mapping, the running
+        round is waited for and the tracking copy, its generator and the round's result not yet taken are saved
+        too. Restore with :meth:`load_state_dict`."""
+        self._idle()
         return {
+            "background": self.background.state_dict() if self.background is not None else None,
             "config": self.cfg.model_dump(mode="json"),
             "bound": self.model.bound_np.copy(),
             "K": self.K.copy(), "height": self.height, "width": self.width,
@@ -168,6 +220,9 @@ class FieldSLAM:
         self.mapper.rng.bit_generator.state = state["rng"]
         self.initialised = bool(state["initialised"])
         self.mapper.reverted_poses = int(state.get("reverted_poses", 0))
+        if state.get("background") is not None:
+            self.start_background_mapping()
+            self.background.load_state_dict(state["background"])
 
     # ------------------------------------------------------------------------------------------ helpers
     def _require_init(self) -> None:

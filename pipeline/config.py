@@ -55,6 +55,11 @@ class ScheduleConfig(StrictModel):
         "loss is lower on the same rays (a broken odometry step no longer drags the refinement out of its basin)")
     seed_disagreement_m: float = Field(0.02, ge=0, description="metres, see seed_arbitration")
     seed_disagreement_deg: float = Field(2.0, ge=0, description="degrees, see seed_arbitration")
+    background_mapping: bool = Field(
+        False, description="map in a worker thread beside tracking (ESLAM runs its mapper beside its tracker): "
+        "frames between two mapping rounds are tracked on a frozen copy of the field from before the running round, "
+        "each thread gets half the torch threads; keyframes with a pose graph wait for their round (the graph and "
+        "re-maps need the mapped poses). Repeats bit for bit like the serial schedule")
 
 
 class PartsConfig(StrictModel):

@@ -229,20 +229,41 @@ class PolicyKeyframer:
 
 # -------------------------------------------------------------------------------------------------- mapper
 class FieldMapper:
-    """Field mapping on keyframes and every ``map_every`` frames; re-maps after corrections; the mesh."""
+    """Field mapping on keyframes and every ``map_every`` frames; re-maps after corrections; the mesh.
 
-    def __init__(self, field, map_every: int) -> None:
+    ``background``: each round runs in a worker thread beside the tracking of the next frames
+    (:meth:`lrslam.field.slam.FieldSLAM.map_in_background`); :meth:`map` then returns the previous round's poses
+    and :meth:`collect` the current one's."""
+
+    def __init__(self, field, map_every: int, background: bool = False) -> None:
         self.field = field
         self.map_every = map_every
+        self.background = background
 
     def start(self, frame: Frame, T_w_c0: np.ndarray, progress=None) -> None:
         self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0, progress)
+        if self.background:
+            self.field.start_background_mapping()
 
     def due(self, frame: Frame, is_keyframe: bool) -> bool:
         return is_keyframe or frame.index % self.map_every == 0
 
     def map(self, frame: Frame, T_w_c: np.ndarray, keyframe_poses: dict, add_keyframe: bool) -> dict:
-        return self.field.map(frame.index, frame.rgb, frame.depth, T_w_c, keyframe_poses, add_keyframe)
+        """One mapping round at ``T_w_c``; returns optimised poses ``{frame id: T_w_c}`` (of this round, or of
+        the previous one in the background)."""
+        if not self.background:
+            return self.field.map(frame.index, frame.rgb, frame.depth, T_w_c, keyframe_poses, add_keyframe)
+        done = self.collect()
+        self.field.map_in_background(frame.index, frame.rgb, frame.depth, T_w_c, keyframe_poses, add_keyframe)
+        return done
+
+    def collect(self) -> dict:
+        """The running background round's poses (waits for it; ``{}`` when none or not in the background)."""
+        return (self.field.take_mapped() or {}) if self.background else {}
+
+    def stop(self) -> None:
+        if self.background:
+            self.field.stop_background_mapping()
 
     def remap(self, keyframe_poses: dict, ids: list[int]) -> dict:
         return self.field.remap(keyframe_poses, ids)
@@ -387,7 +408,7 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
         keyframer = PolicyKeyframer(KeyframePolicy(cfg.keyframes))
     else:
         keyframer = EveryNKeyframer(cfg.schedule.keyframe_every)
-    mapper = FieldMapper(field, cfg.schedule.map_every) if field is not None else None
+    mapper = FieldMapper(field, cfg.schedule.map_every, cfg.schedule.background_mapping) if field is not None else None
     backend = None
     if p.backend == "graph":
         from lrslam.backend.graph import PoseGraph

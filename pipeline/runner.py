@@ -4,7 +4,9 @@
 2. refine   — LRSLAM field tracking by rendering loss from the seed (or from the constant-velocity guess when the
                two disagree and the field fits the guess better), kept only where it is better, when asked
 3. keyframe — every N frames (ESLAM) or the motion / overlap policy
-4. map      — joint field + window-pose optimisation; the refined poses go back into the trajectory
+4. map      — joint field + window-pose optimisation; the refined poses go back into the trajectory (with
+               ``schedule.background_mapping`` the round runs in a worker thread beside the next frames' tracking,
+               and its poses come back when the next round is due, at a keyframe with a graph, or at the end)
 5. graph    — keyframe node + frontend, field and loop factors; solved when a loop brings a real correction
 6. re-map   — when the solve moved keyframes, the field is re-optimised at the corrected poses
 
@@ -149,18 +151,24 @@ class SlamRunner:
             rec.keyframe = rec.has_depth and p.keyframer.is_keyframe(frame, T, self.traj)
         idx = self.traj.add(T, is_keyframe=rec.keyframe)
 
-        # 4. map (the window poses the mapper refined go back into the trajectory)
+        # 4. map (the window poses the mapper refined go back into the trajectory; in the background, those of
+        #    the previous round)
         if p.mapper is not None and rec.has_depth and p.mapper.due(frame, rec.keyframe):
             with self.timer("map"):
-                refined = p.mapper.map(frame, T, self.traj.keyframe_poses(), add_keyframe=rec.keyframe)
-            for fid, T_opt in refined.items():
-                if fid == idx or fid in self.traj.keyframe_ids():
-                    self.traj.set_pose(fid, T_opt)
+                self._write_mapped(p.mapper.map(frame, T, self.traj.keyframe_poses(), add_keyframe=rec.keyframe))
 
-        # 5-6. graph and re-map
+        # 5-6. graph and re-map (on the mapped keyframe poses: a background round is waited for)
         if p.backend is not None and rec.keyframe:
+            with self.timer("map"):
+                self._write_mapped(p.mapper.collect() if p.mapper is not None else {})
             self._graph_and_remap(frame, information, rec)
         return self._record(rec, seed.T_w_c, self.traj.pose(idx))
+
+    def _write_mapped(self, refined: dict) -> None:
+        """Mapper-optimised poses (the round's frame and window keyframes) back into the trajectory."""
+        for fid, T_opt in refined.items():
+            if 0 <= fid < len(self.traj):
+                self.traj.set_pose(fid, T_opt)
 
     def _graph_and_remap(self, frame: Frame, information: np.ndarray | None, rec: FrameRecord) -> None:
         p, c = self.parts, self.backend_cfg
@@ -232,6 +240,10 @@ class SlamRunner:
         """The run's frozen result (with the field's mesh when there is a field and ``mesh``)."""
         p = self.parts
         field_mesh = None
+        if p.mapper is not None:
+            with self.timer("map"):
+                self._write_mapped(p.mapper.collect())
+            p.mapper.stop()
         if mesh and p.mapper is not None:
             with self.timer("mesh"):
                 field_mesh = p.mapper.mesh(self.traj.keyframe_poses(), mesh_resolution)
