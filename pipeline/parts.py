@@ -235,10 +235,20 @@ class FieldMapper:
     (:meth:`lrslam.field.slam.FieldSLAM.map_in_background`); :meth:`map` then returns the previous round's poses
     and :meth:`collect` the current one's."""
 
-    def __init__(self, field, map_every: int, background: bool = False) -> None:
+    def __init__(self, field, map_every: int, background: bool = False,
+                 wait_motion: tuple[float, float] = (np.inf, np.inf)) -> None:
         self.field = field
         self.map_every = map_every
         self.background = background
+        self.wait_motion = wait_motion
+
+    def must_wait(self, traj: Trajectory) -> bool:
+        """Background only: the last frame-to-frame motion exceeded ``wait_motion`` (metres, degrees), so the next
+        frame should be tracked on the mapped field (:meth:`collect` first)."""
+        if not self.background or len(traj) < 2:
+            return False
+        d_t, d_r = pose_error(traj.pose(-2), traj.pose(-1))
+        return d_t > self.wait_motion[0] or d_r > self.wait_motion[1]
 
     def start(self, frame: Frame, T_w_c0: np.ndarray, progress=None) -> None:
         self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0, progress)
@@ -408,7 +418,9 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
         keyframer = PolicyKeyframer(KeyframePolicy(cfg.keyframes))
     else:
         keyframer = EveryNKeyframer(cfg.schedule.keyframe_every)
-    mapper = FieldMapper(field, cfg.schedule.map_every, cfg.schedule.background_mapping) if field is not None else None
+    sc = cfg.schedule
+    mapper = None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
+                                                    (sc.background_wait_m, sc.background_wait_deg))
     backend = None
     if p.backend == "graph":
         from lrslam.backend.graph import PoseGraph

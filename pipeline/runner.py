@@ -126,7 +126,10 @@ class SlamRunner:
             rec.notes.append("no valid depth: pose from the seed, no mapping")
             log.warning("frame %d: no valid depth; keeping the seed pose and skipping mapping", frame.index)
 
-        # 1. seed
+        # 1. seed (after fast motion, a background mapping round is waited for first: see ScheduleConfig)
+        if p.mapper is not None and p.mapper.must_wait(self.traj):
+            with self.timer("map"):
+                self._write_mapped(p.mapper.collect())
         with self.timer("seed"):
             seed = p.seeder.seed(frame, self.traj)
         rec.seed_ok = seed.ok
