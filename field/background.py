@@ -7,9 +7,11 @@ result is taken (:meth:`BackgroundMapping.take`); only then is the copy refreshe
 field version tracks which frame -- follows the frame order alone, never thread timing, and a run repeats
 bit for bit on the CPU (each thread has its own torch generator).
 
-Threads: each of the two threads uses half the run's torch threads (at least one): on 2 cores the tracker and
-the mapper then each keep a core busy instead of splitting both between them (torch's and numba's kernels
-release the GIL). Measured on the TUM excerpt, field mode, 2 cores: see the README ("Speed").
+Threads: each of the two threads uses half the run's torch threads (at least one); torch's and numba's kernels
+release the GIL, the Python between them does not. Measured on the TUM excerpt, field mode, 2 cores (README,
+"Speed"): tracking on one core beside the mapper is ~1.5x slower than on two, but the overlap pays for it (same
+settings: 2.37 -> 2.01 s/frame). A tracker on a map one round behind loses a fast camera: the runner waits for the
+round after large motion (``schedule.background_wait_*``).
 """
 
 from __future__ import annotations
