@@ -12,9 +12,9 @@ side each slow down 2-5x). Sequences (``--sequences``):
 The table per sequence: s/frame in all and per stage (io, seed, refine, keyframe, map, graph, remap; the mesh
 at the end is given in seconds, not per frame; with ``schedule.background_mapping``, as in ``tum-cpu``'s field
 mode, ``map`` is the time the tracking thread waited for the mapper), tracking iterations used per frame (mean),
-first-third and last-third s/frame and their ratio, peak RSS, ATE RMSE. ``--paired`` adds the CP-SA (LRSLAM) / tri-plane (ESLAM)
-ratio of whole-run s/frame measured in one process: two runners on the same frames in lockstep, frame by frame,
-so both see the same machine speed (``--paired-frames`` frames, field mode).
+first-third and last-third s/frame and their ratio, peak RSS, ATE RMSE. ``--paired`` adds the CP-SA (LRSLAM) /
+tri-plane (ESLAM) ratio of whole-run s/frame measured in one process: two runners on the same frames in lockstep,
+frame by frame, so both see the same machine speed (``--paired-frames`` frames, field mode).
 
 Usage::
 

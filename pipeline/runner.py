@@ -247,9 +247,9 @@ class SlamRunner:
             with self.timer("map"):
                 self._write_mapped(p.mapper.collect())
             p.mapper.stop()
-        if mesh and p.mapper is not None:
-            with self.timer("mesh"):
-                field_mesh = p.mapper.mesh(self.traj.keyframe_poses(), mesh_resolution)
+            if mesh:
+                with self.timer("mesh"):
+                    field_mesh = p.mapper.mesh(self.traj.keyframe_poses(), mesh_resolution)
         recs = tuple(self._records)
         counts = {
             "n_loop_closures": self.n_loops, "n_remaps": self.n_remaps,
