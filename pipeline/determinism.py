@@ -11,8 +11,10 @@ the thread schedule. On the CPU, with the same thread counts, the field (torch C
 static per-thread split) and GTSAM repeat bit for bit; Open3D's multi-threaded RGB-D odometry and ICP do not
 (Open3D 0.20 runs them on its own thread pool, whatever ``OMP_NUM_THREADS`` says: two registrations of the same
 frames differ by ~1e-6 m, and a gate decided on the edge turns that into centimetres over a run).
-:func:`open3d_threads` with ``deterministic`` (the run config's key) runs Open3D on one thread. On a GPU,
-torch's atomic adds in the backward pass are not reproducible either.
+:func:`open3d_threads` with ``deterministic`` (the run config's key) runs Open3D on one thread. Open3D's own
+multi-scale RGB-D odometry is not reproducible even then on every CPU (its IPP Gaussian filter depends on the
+image's address), so :mod:`lrslam.frontend.rgbd_pyramid` builds that pyramid in numpy. On a GPU, torch's atomic
+adds in the backward pass are not reproducible either.
 """
 
 from __future__ import annotations
