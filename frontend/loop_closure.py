@@ -169,7 +169,9 @@ class LoopCloser:
             reason = self._verify_appearance(orb, self._kfs[i].orb)
             if reason is None:
                 T_i_j_pred = inv(poses[i]) @ T
-                res = register_rgbd(view, self._kfs[i].view, T_i_j_pred, c.registration, c.gates)
+                stored = self._kfs[i].view
+                res = register_rgbd(view, stored, T_i_j_pred, c.registration, c.gates)
+                stored.cache.clear()  # a stored keyframe keeps its images only (its pyramid is ~1 MB at 160x120)
                 if not res.ok:
                     reason = res.reason
                 elif res.fitness < c.min_fitness:

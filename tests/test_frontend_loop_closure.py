@@ -52,6 +52,13 @@ def test_revisit_is_detected_and_verified(scene, caplog):
     assert c.fitness > 0.5 and c.rmse < 0.015
     assert np.linalg.eigvalsh(c.information)[0] > 0
     assert "loop 0-6 accepted" in caplog.text
+    # Stored keyframes keep their images only: nothing derived (pyramids, normals) piles up per keyframe.
+    assert all(not kf.view.cache for kf in closer._kfs.values())
+    from lrslam.pipeline.determinism import open3d_threads
+
+    with open3d_threads(True):  # rebuilt, the same bit for bit (Open3D on one thread)
+        first, second = (closer.detect(6, kf, _poses(frames, kf.T_w_c_gt @ drift)) for _ in range(2))
+        assert np.array_equal(first[0].T_i_j, second[0].T_i_j)
 
 
 def test_false_candidate_is_rejected_with_a_reason(scene, caplog):
