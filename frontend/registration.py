@@ -15,8 +15,9 @@ Methods (``RegistrationConfig.method``):
   the *nearest* target pixel, which biases the result by a fraction of a pixel: 1-3.4 mm at 320x240 on the
   synthetic room of the tests. An optional full-resolution point-to-plane polish (``refine_iterations`` > 0,
   geometry well conditioned) removes that bias on clean synthetic data (0.1-0.3 mm), but made the
-  frame-to-frame ATE worse on real data (TUM fr1/rpy, 120 frames at 320x240: 8.4 vs 4.8 cm; 7-Scenes redkitchen, 150 frames: 3.6 vs
-  2.4 cm, although its median per-frame error there was lower, 2.4 vs 3.7 mm), so it is off by default.
+  frame-to-frame ATE worse on real data (TUM fr1/rpy, 120 frames at 320x240: 8.4 vs 4.8 cm; 7-Scenes
+  redkitchen, 150 frames: 3.6 vs 2.4 cm, although its median per-frame error there was lower, 2.4 vs 3.7 mm),
+  so it is off by default.
 - ``icp``: ``o3d.t.pipelines.registration.multi_scale_icp`` on back-projected, voxel-downsampled points,
   point-to-plane or coloured ICP.
 - ``kiss``: KISS-ICP's registration (point-to-point, robust kernel, voxel hash map of the target) on
