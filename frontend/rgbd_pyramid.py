@@ -149,6 +149,6 @@ def hybrid_odometry(source: RGBDView, target: RGBDView, init_T_tgt_src: np.ndarr
 
 
 def _relative_change(before: float, after: float) -> float:
-    """``|before - after| / before`` as Open3D computes it in float arithmetic (inf or NaN for ``before`` 0, so
-    the first step never counts as converged)."""
-    return float(np.divide(np.float64(abs(before - after)), np.float64(before))) if before != 0 else float("inf")
+    """``|before - after| / before`` as Open3D computes it; inf for ``before`` 0, so the first step (from the
+    initial RMSE 0) never counts as converged."""
+    return abs(before - after) / before if before != 0 else float("inf")
