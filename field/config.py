@@ -83,12 +83,15 @@ class RenderConfig(StrictModel):
 
     n_stratified: samples over ``[0, 1.2 d]`` (or up to the bound when d is missing). n_importance: samples in
     ``d +- 1.5 T`` (or drawn from coarse weights when d is missing). perturb: jitter samples within their
-    intervals during optimisation. chunk: rays per batch when rendering whole images.
+    intervals during optimisation. chunk: rays per batch when rendering whole images. colour_min_weight: query
+    the appearance only at samples whose compositing weight exceeds this (0: at every sample, the paper's
+    rendering; see :func:`lrslam.field.render.render_rays`).
     """
 
     n_stratified: int = Field(32, gt=0)
     n_importance: int = Field(8, ge=0)
     perturb: bool = True
+    colour_min_weight: float = Field(0.0, ge=0.0, lt=1.0)
     chunk: int = Field(20_000, gt=0)
 
 

@@ -5,6 +5,12 @@ Density ``sigma_i = beta * sigmoid(-beta * s_i)`` from the truncated SDF ``s_i``
 ``d = sum_i w_i z_i``. This is exactly ESLAM's ``alpha_i * cumprod(1 - alpha_j)`` with
 ``alpha_i = 1 - exp(-sigma_i)`` (ESLAM adds 1e-10 inside the product); no interval lengths enter, as in ESLAM.
 The weights sum to at most 1 and the remainder (background) renders black / depth 0, as ESLAM.
+
+Speed (``RenderConfig.colour_min_weight``): the SDF is needed at every sample (free-space and band losses), the
+colour only where the weight is not negligible. Free space in front of the surface has ``w`` of ~4.5e-4 per
+sample at beta 10 and the samples behind it ~0, so at 1e-3 the appearance (Six-axis lines and colour MLP, two
+thirds of a step's cost on CPU) is queried at 10-24 % of the samples on TUM, for a rendered colour at most the
+weight left out (0.007-0.012 per ray there) away from the full sum.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ class FieldLike(Protocol):
 
     def sdf(self, p: torch.Tensor) -> torch.Tensor: ...
 
-    def query(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+    def colour(self, p: torch.Tensor) -> torch.Tensor: ...
 
 
 @dataclass
@@ -66,7 +72,9 @@ def render_rays(field: FieldLike, origins: torch.Tensor, dirs: torch.Tensor, dep
 
     Args:
         field: the scene model. depth: (R,) measured depth in metres, 0 where missing (those rays use
-            hierarchical sampling). truncation: T in metres. cfg: sample counts. generator: randomness.
+            hierarchical sampling). truncation: T in metres. cfg: sample counts, and ``colour_min_weight``: the
+            appearance is queried only at samples whose weight exceeds it (0: at all, as the paper writes Eq.
+            volume_render). generator: randomness.
         jitter: overrides ``cfg.perturb`` (e.g. False for deterministic evaluation).
     Returns:
         :class:`RenderResult`; gradients flow to the field and to ``origins`` / ``dirs``.
@@ -83,11 +91,28 @@ def render_rays(field: FieldLike, origins: torch.Tensor, dirs: torch.Tensor, dep
         z[~has_depth] = hierarchical_depths(field.sdf, lambda s: compositing_weights(sdf_to_density(s, field.beta)),
                                             o, d, far, n_s, n_i, jitter, generator)
     pts = origins.unsqueeze(1) + dirs.unsqueeze(1) * z.unsqueeze(-1)  # (R, S, 3), differentiable in the rays
-    sdf, rgb = field.query(pts.reshape(-1, 3))
-    sdf = sdf.view(z.shape)
+    flat = pts.reshape(-1, 3)
+    sdf = field.sdf(flat).view(z.shape)
     weights = compositing_weights(sdf_to_density(sdf, field.beta))
+    rgb = _sample_colours(field, flat, weights, cfg.colour_min_weight)
     return RenderResult(depth=(weights * z).sum(-1), rgb=(weights.unsqueeze(-1) * rgb.view(*z.shape, 3)).sum(1),
                         sdf=sdf, z=z, weights=weights)
+
+
+def _sample_colours(field: FieldLike, pts: torch.Tensor, weights: torch.Tensor, min_weight: float) -> torch.Tensor:
+    """Per-sample colours (R*S, 3) at the points ``pts`` (R*S, 3) with compositing ``weights`` (R, S).
+
+    ``min_weight`` 0 queries every sample (Eq. volume_render as written). Above 0, only samples whose weight
+    exceeds it are queried and the others get colour 0: a sample of weight ``w`` contributes at most ``w`` to the
+    rendered colour (colours lie in [0, 1]) and, through the weights, gradients scaled by ``w``, so the rendered
+    colour changes by at most the weight left out (about 0.007-0.012 per ray at 1e-3 on TUM: free space in front
+    of the surface has ``w`` of ~4.5e-4 per sample at beta 10, the samples behind it ~0). The selection uses the
+    weights' values only; gradients still reach the field and the rays through the weights and the colours kept.
+    """
+    if min_weight <= 0.0:
+        return field.colour(pts)
+    keep = (weights.detach().reshape(-1) > min_weight).nonzero().squeeze(1)
+    return pts.new_zeros(len(pts), 3).index_put((keep,), field.colour(pts[keep]))
 
 
 @torch.no_grad()

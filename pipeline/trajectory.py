@@ -82,6 +82,13 @@ class Trajectory:
         a = self._anchor[idx]
         return self._rel[idx].copy() if a is None else self._kf[a] @ self._rel[idx]
 
+    def last_motion(self) -> tuple[float, float]:
+        """Motion between the last two frames: (metres, degrees); (0, 0) with fewer than two frames."""
+        if len(self._rel) < 2:
+            return 0.0, 0.0
+        d_t, d_r = pose_error(self.pose(-2), self.pose(-1))
+        return float(d_t), float(d_r)
+
     def poses(self) -> np.ndarray:
         """All frames' ``T_w_c`` as (N, 4, 4)."""
         return np.stack([self.pose(i) for i in range(len(self))]) if len(self) else np.zeros((0, 4, 4))

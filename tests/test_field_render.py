@@ -27,8 +27,8 @@ class AnalyticField:
     def sdf(self, p):
         return (self.dist(p) / T_TRUNC).clamp(-1.0, 1.0)
 
-    def query(self, p):
-        return self.sdf(p), 0.5 + 0.25 * torch.sin(3 * p)
+    def colour(self, p):
+        return 0.5 + 0.25 * torch.sin(3 * p)
 
 
 def _plane(p):
@@ -199,3 +199,38 @@ def test_scene_model_gradients_flow_to_pose_and_field():
     for grad in (pose.rotation.grad, pose.translation.grad):
         assert torch.all(torch.isfinite(grad)) and float(grad.abs().sum()) > 0
     assert all(p.grad is not None and torch.all(torch.isfinite(p.grad)) for p in model.parameters())
+
+
+def test_colour_only_where_the_weight_counts():
+    """``colour_min_weight``: the appearance is queried only at samples above the weight; depth, SDF and weights
+    are unchanged, the colour moves by at most the weight left out, and colour gradients still reach the rays."""
+    K, u, v = _pixels(40, seed=5)
+    queried = []
+
+    class Counting(AnalyticField):
+        def colour(self, p):
+            queried.append(len(p))
+            return super().colour(p)
+
+    field = Counting(_sphere, beta=10.0)
+    o, d = world_rays(camera_directions(u, v, torch.tensor(K, dtype=torch.float32)), torch.eye(4)[None])
+    depth = torch.tensor(_sphere_depth(d.numpy().astype(np.float64)), dtype=torch.float32)
+    out = {}
+    for w_min in (0.0, 1e-30, 1e-3):
+        oo, dd = o.clone().requires_grad_(True), d.clone().requires_grad_(True)
+        cfg = RenderConfig(n_stratified=32, n_importance=8, perturb=False, colour_min_weight=w_min)
+        r = render_rays(field, oo, dd, depth, T_TRUNC, cfg, torch.Generator().manual_seed(0))
+        r.rgb.sum().backward()
+        out[w_min] = (r, oo.grad, queried[-1])
+    full, _, n_full = out[0.0]
+    assert n_full == 40 * 40
+    # a threshold below every weight selects all samples: the same numbers bit for bit
+    same, _, n_same = out[1e-30]
+    assert n_same == int((full.weights > 1e-30).sum()) and torch.equal(same.rgb, full.rgb)
+    cut, grad_o, n_cut = out[1e-3]
+    dropped = (full.weights * (full.weights <= 1e-3)).sum(-1)
+    assert n_cut == int((full.weights > 1e-3).sum()) and n_cut < 0.5 * n_full
+    assert torch.equal(cut.depth, full.depth) and torch.equal(cut.weights, full.weights)
+    diff = (cut.rgb - full.rgb).abs().max(-1).values
+    assert torch.all(diff <= dropped + 1e-6) and float(diff.max()) > 0  # colours lie in [0.25, 0.75]
+    assert torch.all(torch.isfinite(grad_o)) and float(grad_o.abs().sum()) > 0
