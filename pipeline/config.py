@@ -67,12 +67,6 @@ class ScheduleConfig(StrictModel):
         "camera leaves the lagging map behind: TUM fr1/rpy at every 3rd frame, field mode, 3 seeds: 27 cm without "
         "the wait)")
     background_wait_deg: float = Field(4.0, ge=0, description="degrees, see background_wait_m")
-    full_tracking_after_m: float | None = Field(
-        None, ge=0, description="when the last frame-to-frame motion exceeded this (metres) or "
-        "full_tracking_after_deg, the next frame's field tracking runs all its iterations (field.tracking."
-        "stop_patience ignored): from a seed far off, the loss plateaus on the way (TUM fr1/rpy at every 3rd frame, "
-        "field mode, seed 0: 45 cm with the early stop everywhere, 8.6 cm with it off); None: never")
-    full_tracking_after_deg: float | None = Field(None, ge=0, description="degrees, see full_tracking_after_m")
 
 
 class PartsConfig(StrictModel):

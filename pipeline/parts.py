@@ -153,27 +153,21 @@ class OdometrySeeder:
 
 # -------------------------------------------------------------------------------------------------- refiners
 class NoRefiner:
-    def refine(self, frame: Frame, seed: Seed, last_motion: tuple[float, float] = (0.0, 0.0)) -> Refinement:
+    def refine(self, frame: Frame, seed: Seed) -> Refinement:
         return Refinement(seed.T_w_c)
 
 
 class FieldRefiner:
     """LRSLAM tracking against the frozen field from the seed (``field.tracking.accept_if_better`` keeps the
-    seed unless the refinement lowers the loss on the same rays).
+    seed unless the refinement lowers the loss on the same rays)."""
 
-    ``full_after``: (metres, degrees); when the last frame-to-frame motion exceeded either, tracking runs all its
-    iterations (no early stop): a seed far from the truth is where the loss plateaus on the way."""
-
-    def __init__(self, field, full_after: tuple[float, float] = (np.inf, np.inf)) -> None:
+    def __init__(self, field) -> None:
         self.field = field
-        self.full_after = full_after
 
-    def refine(self, frame: Frame, seed: Seed, last_motion: tuple[float, float] = (0.0, 0.0)) -> Refinement:
-        """Refine ``seed``; ``last_motion``: (metres, degrees) between the two frames before this one."""
+    def refine(self, frame: Frame, seed: Seed) -> Refinement:
         start, note = self._start(frame, seed)
         T0 = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
-        fast = last_motion[0] > self.full_after[0] or last_motion[1] > self.full_after[1]
-        res = self.field.track(frame.rgb, frame.depth, T0, early_stop=not fast)
+        res = self.field.track(frame.rgb, frame.depth, T0)
         if not res.ok:
             return Refinement(T0, False, False, None, f"field tracking fell back to its starting pose: {res.reason}",
                               res.iters, start)
@@ -417,9 +411,7 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
                                 (sc.seed_disagreement_m, sc.seed_disagreement_deg) if arbitrate else None)
     else:
         seeder = ConstantVelocitySeeder(cfg.schedule.velocity_model)
-    sc = cfg.schedule
-    full_after = tuple(np.inf if v is None else v for v in (sc.full_tracking_after_m, sc.full_tracking_after_deg))
-    refiner = NoRefiner() if field is None else FieldRefiner(field, full_after)
+    refiner = FieldRefiner(field) if field is not None else NoRefiner()
     if p.keyframer == "policy":
         from lrslam.frontend.keyframes import KeyframePolicy
 

@@ -142,7 +142,7 @@ class SlamRunner:
         T, information = seed.T_w_c, None
         if p.field is not None and rec.has_depth:
             with self.timer("refine"):
-                ref = p.refiner.refine(frame, seed, self.traj.last_motion())
+                ref = p.refiner.refine(frame, seed)
             rec.refine_ok, rec.refine_accepted, information = ref.ok, ref.accepted, ref.information
             rec.refine_iters, rec.refine_start = ref.iters, ref.start
             T = ref.T_w_c
