@@ -381,9 +381,22 @@ def test_entry_point_version_and_help():
 
 
 # ------------------------------------------------------------------------------------------------ kill tests
-def _start_run(world, out: Path, every: int) -> subprocess.Popen:
-    # field mode with few iterations: ~0.3 s per frame, slow enough that the signal lands mid-run
-    args = [sys.executable, "-m", "lrslam", "run", world["seq"], "--out", str(out), "--partial-every", str(every),
+KILL_FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def long_seq(tmp_path_factory) -> Path:
+    """A 60-frame sequence: field mode with few iterations takes 0.04-0.3 s per frame, so 0.1-0.5 s after the
+    first partial save (frame 2 or 3) the run is still far from its end, however fast the machine (12 frames
+    were not: on a fast VM the run finished within the 0.5 s the test waited)."""
+    from lrslam.frontend.synthetic.writer import generate
+
+    return generate(tmp_path_factory.mktemp("kill") / "seq", scene="room", trajectory="loop", n_frames=KILL_FRAMES,
+                    seed=1, width=160, height=120, show_progress=False)
+
+
+def _start_run(seq: Path, out: Path, every: int) -> subprocess.Popen:
+    args = [sys.executable, "-m", "lrslam", "run", str(seq), "--out", str(out), "--partial-every", str(every),
             *FIELD[:2], *FIELD[4:]]
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -408,27 +421,27 @@ def _partial(out: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_terminated_run_saves_its_partial_trajectory(world, tmp_path, sig, code):
+def test_terminated_run_saves_its_partial_trajectory(long_seq, tmp_path, sig, code):
     out = tmp_path / "run"
-    proc = _start_run(world, out, every=2)
+    proc = _start_run(long_seq, out, every=2)
     _wait_for(out / "trajectory_partial.txt", proc)
-    time.sleep(0.3)
+    time.sleep(0.1)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == code and "Traceback" not in err, err
     ts, _ = _partial(out)
-    assert 2 <= len(ts) < 12
+    assert 2 <= len(ts) < KILL_FRAMES
 
 
-def test_killed_run_leaves_a_partial_trajectory_within_the_save_interval(world, tmp_path):
+def test_killed_run_leaves_a_partial_trajectory_within_the_save_interval(long_seq, tmp_path):
     out = tmp_path / "run"
-    proc = _start_run(world, out, every=3)
+    proc = _start_run(long_seq, out, every=3)
     _wait_for(out / "trajectory_partial.txt", proc)
-    time.sleep(0.5)
+    time.sleep(0.2)
     proc.kill()
     proc.communicate(timeout=60)
     assert proc.returncode == -signal.SIGKILL
     ts, _ = _partial(out)
     done = 1 + (out / "run.log").read_text().count(" done: ")  # frame 0 + one line per later frame
-    assert done < 12, "the run finished before the kill"
+    assert done < KILL_FRAMES, "the run finished before the kill"
     assert len(ts) % 3 == 0 and done - 3 < len(ts) <= done
