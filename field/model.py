@@ -76,10 +76,6 @@ class SceneModel(nn.Module):
         """World points (N, 3) metres -> RGB (N, 3) in [0, 1] (Eq. clr + MLP_a)."""
         return self.colour_decoder(self.appearance.features(p))
 
-    def query(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World points (N, 3) -> (sdf (N,), rgb (N, 3))."""
-        return self.sdf(p), self.colour(p)
-
     def parameter_count(self) -> dict[str, int]:
         """Scalar parameter counts. ``geometry`` / ``appearance``: the encodings f_g / f_a; ``encodings`` = f_g +
         f_a (what grows with the scene: O(L) or O(L^2)); ``decoders``: both MLPs and, when learnable, beta (a few

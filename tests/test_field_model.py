@@ -60,7 +60,7 @@ def test_presets_and_encoding_outputs():
     p = torch.rand(100, 3) * 2 - 1
     for name in PRESETS:
         m = SceneModel(bound, SceneModelConfig.preset(name))
-        sdf, rgb = m.query(p)
+        sdf, rgb = m.sdf(p), m.colour(p)
         assert sdf.shape == (100,) and rgb.shape == (100, 3)
         assert torch.all(sdf.abs() < 1) and torch.all((rgb > 0) & (rgb < 1))
         assert m.geometry.features(p).shape == (100, 64) and m.appearance.features(p).shape == (100, 64)
