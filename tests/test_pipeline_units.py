@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lrslam.camera import intrinsics_matrix
-from lrslam.geometry import random_pose
+from lrslam.geometry import make_pose, random_pose
 from lrslam.pipeline.trajectory import Trajectory
 from lrslam.pipeline.auto_bound import bound_from_frame
 from lrslam.pipeline.timing import StageTimer
@@ -34,6 +34,19 @@ def test_trajectory_set_pose_of_non_keyframe(rng):
     T = random_pose(rng, 0.5, 10.0)
     traj.set_pose(1, T)
     np.testing.assert_allclose(traj.pose(1), T, atol=1e-12)
+
+
+def test_last_motion_is_the_step_between_the_last_two_frames():
+    traj = Trajectory()
+    assert traj.last_motion() == (0.0, 0.0)
+    traj.add(np.eye(4), is_keyframe=True)
+    assert traj.last_motion() == (0.0, 0.0)                     # one frame: no motion yet
+    step = make_pose(np.eye(3), [0.05, 0.0, 0.0])
+    traj.add(step)
+    assert traj.last_motion() == pytest.approx((0.05, 0.0), abs=1e-12)
+    c, s = np.cos(np.radians(10.0)), np.sin(np.radians(10.0))
+    traj.add(step @ make_pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), [0.0, 0.03, 0.04]))
+    assert traj.last_motion() == pytest.approx((0.05, 10.0), abs=1e-9)   # 3-4-5 cm and 10 deg
 
 
 def test_bound_from_frame_contains_points_and_camera():
