@@ -52,8 +52,8 @@ def sequence_path(name: str, frames: int, out: Path) -> Path | None:
     """The folder of sequence ``name`` (the synthetic loop is generated once under ``out/data``); None when a
     real excerpt is absent."""
     if name == "synthetic":
-        from lrslam.frontend.synthetic.noise import NoiseConfig
-        from lrslam.frontend.synthetic.writer import generate
+        from lrslam.datasets.synth.noise import NoiseConfig
+        from lrslam.datasets.synth.writer import generate
 
         noise = NoiseConfig(depth_sigma=0.01, kinect=True, seed=0)
         return Path(generate(out / "data" / f"room_loop_{frames}", scene="room", trajectory="loop", n_frames=frames,
@@ -112,7 +112,7 @@ def table(title: str, rows: dict[str, dict]) -> str:
 def paired_ratio(seq: Path, preset: str, stride: int, frames: int, overrides: list[str]) -> dict:
     """CP-SA / tri-plane whole-run s/frame in one process: two field-mode runners step through the same frames
     in lockstep (each frame: LRSLAM's step, then ESLAM's), so speed drift of the machine hits both alike."""
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
     from lrslam.pipeline.config import build_config
     from lrslam.pipeline.run import choose_bound
     from lrslam.pipeline.runner import SlamRunner

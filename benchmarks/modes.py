@@ -106,7 +106,7 @@ def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
 
 
 def _run(seq: Path, preset: str, overrides: list[str], a, out: Path) -> tuple[str, bool]:
-    from lrslam.pipeline.batch import run_batch
+    from lrslam.tools.batch import run_batch
 
     results = run_batch([seq], _jobs(preset, overrides, a.seeds, a.ablation, tuple(a.modes.split(","))), out,
                         progress=not a.quiet)
@@ -144,8 +144,8 @@ def main() -> int:
         set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP
     texts, oks = [], []
     if a.suite in ("synthetic", "all"):
-        from lrslam.frontend.synthetic.noise import NoiseConfig
-        from lrslam.frontend.synthetic.writer import generate
+        from lrslam.datasets.synth.noise import NoiseConfig
+        from lrslam.datasets.synth.writer import generate
 
         noise = NoiseConfig(depth_sigma=0.01, kinect=True, seed=a.data_seed)
         seq = generate(a.out / "data" / f"room_loop_{a.frames}", scene="room", trajectory="loop", n_frames=a.frames,

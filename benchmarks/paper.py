@@ -107,8 +107,8 @@ def _run(seq: Path, preset: str, repr_name: str, out: Path, overrides: list[str]
 
 
 def _synthetic(work: Path, n: int, noise_sigma: float = 0.0) -> Path:
-    from lrslam.frontend.synthetic.noise import NoiseConfig
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.noise import NoiseConfig
+    from lrslam.datasets.synth.writer import generate
 
     tag = f"room_loop_{n}" + (f"_sigma{noise_sigma:g}" if noise_sigma else "")
     return generate(work / "data" / tag, scene="room", trajectory="loop", n_frames=n, seed=0,
@@ -209,9 +209,9 @@ def ablation(size: Size, work: Path, docs: Path) -> dict:
 # ---------------------------------------------------------------------------------------- 4. depth noise
 def noise_robustness(size: Size, work: Path) -> dict:
     from lrslam.errors import InputError
-    from lrslam.frontend.datasets import open_sequence
-    from lrslam.pipeline.evaluation.mesh_eval import evaluate_run_mesh
-    from lrslam.pipeline.evaluation.mesh_protocol import get_protocol
+    from lrslam.datasets import open_sequence
+    from lrslam.evaluation.mesh_eval import evaluate_run_mesh
+    from lrslam.evaluation.mesh_protocol import get_protocol
 
     seq_path = _synthetic(work, size.noise_frames, noise_sigma=0.05)
     seq = open_sequence(seq_path)
@@ -240,7 +240,7 @@ def noise_robustness(size: Size, work: Path) -> dict:
 def convergence(size: Size, work: Path, docs: Path) -> dict:
     from lrslam.field.render import render_image
     from lrslam.field.slam import FieldSLAM
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
     from lrslam.pipeline.config import build_config
 
     seq = open_sequence(_synthetic(work, size.frames))

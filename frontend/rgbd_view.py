@@ -30,7 +30,7 @@ __all__ = [
 
 class FrameLike(Protocol):
     """Anything with ``rgb (H, W, 3) uint8``, ``depth (H, W) float32`` metres and ``K (3, 3)``, e.g.
-    :class:`lrslam.frontend.frame.Frame`."""
+    :class:`lrslam.frame.Frame`."""
 
     rgb: np.ndarray
     depth: np.ndarray

@@ -21,10 +21,10 @@ __all__ = ["build_config", "RunConfig", "open_sequence", "run_sequence", "RunRes
            "make_executor", "write_report", "compute_ate"]
 
 _WHERE = {"build_config": "lrslam.pipeline.config", "RunConfig": "lrslam.pipeline.config",
-          "open_sequence": "lrslam.frontend.datasets", "run_sequence": "lrslam.pipeline.run",
-          "RunResult": "lrslam.pipeline.run", "expand_grid": "lrslam.pipeline.batch_grid",
-          "run_grid": "lrslam.pipeline.batch", "make_executor": "lrslam.pipeline.batch_exec",
-          "write_report": "lrslam.pipeline.report", "compute_ate": "lrslam.pipeline.evaluation.ate"}
+          "open_sequence": "lrslam.datasets", "run_sequence": "lrslam.pipeline.run",
+          "RunResult": "lrslam.pipeline.run", "expand_grid": "lrslam.tools.batch_grid",
+          "run_grid": "lrslam.tools.batch", "make_executor": "lrslam.tools.batch_exec",
+          "write_report": "lrslam.tools.report", "compute_ate": "lrslam.evaluation.ate"}
 
 
 def __getattr__(name: str):

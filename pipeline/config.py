@@ -24,7 +24,7 @@ from lrslam.errors import InputError
 from lrslam.backend.graph import GraphConfig
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.frontend.keyframes import KeyframeConfig
-from lrslam.frontend.loop_closure import LoopClosureConfig
+from lrslam.backend.loop_closure import LoopClosureConfig
 from lrslam.frontend.odometry import OdometryConfig
 
 __all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig", "BackendConfig",
@@ -86,7 +86,7 @@ class BackendConfig(StrictModel):
     """How the pose graph is fed and when its result is written back and re-mapped for.
 
     factors: which measurements enter the graph: ``odometry`` (the frontend's own keyframe-to-keyframe
-    estimate, :mod:`lrslam.frontend.keyframe_link`), ``field`` (the relative pose of consecutive keyframes in
+    estimate, :mod:`lrslam.backend.keyframe_link`), ``field`` (the relative pose of consecutive keyframes in
     the current trajectory, with the field tracker's information; re-stated from the current poses before every
     solve, so the graph never pulls the mapper's refinements back), ``loop`` (verified loop closures).
     optimise: ``on_loop`` solves when a loop with a real correction arrives (above ``loop_min_correction_*``;
@@ -175,7 +175,7 @@ class RunConfig(StrictModel):
         return data
 
     def reader_options(self):
-        from lrslam.frontend.datasets import ReaderOptions
+        from lrslam.datasets import ReaderOptions
 
         return ReaderOptions.model_validate(self.dataset.options)
 

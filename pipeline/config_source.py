@@ -21,7 +21,7 @@ def default_preset(path, cuda: bool | None = None) -> tuple[str | None, str]:
     """The dataset preset for a sequence folder when no ``--config`` is given: the CPU-sized ``<dataset>-cpu``
     preset on a machine without CUDA (when one exists), the paper's settings with CUDA. Returns (preset or None,
     a one-line reason). Never raises for an unreadable folder (the run reports that itself)."""
-    from lrslam.frontend.datasets import detect_layout
+    from lrslam.datasets import detect_layout
     from lrslam.pipeline.config import list_presets
 
     try:

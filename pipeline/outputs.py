@@ -28,7 +28,7 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> Non
     """ATE (nearest ground-truth sample, as ``lrslam eval ate`` and evo) of the trajectory and of ``extra``
     (name -> (N, 4, 4) or None: the seeds, the frontend's own estimate); mesh metrics (ESLAM protocol) when the
     sequence has a GT mesh -- evaluated un-moved when the run started in the GT world."""
-    from lrslam.pipeline.evaluation.ate import compute_run_ate
+    from lrslam.evaluation.ate import compute_run_ate
 
     res = compute_run_ate(timestamps, poses, seq)
     if res is None:
@@ -41,8 +41,8 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> Non
             metrics[f"{name}_ate_rmse_cm"] = compute_run_ate(timestamps, other, seq).rmse_cm
     gt_mesh = getattr(seq, "gt_mesh_path", None)
     if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
-        from lrslam.pipeline.evaluation.mesh_eval import evaluate_run_mesh
-        from lrslam.pipeline.evaluation.mesh_protocol import get_protocol
+        from lrslam.evaluation.mesh_eval import evaluate_run_mesh
+        from lrslam.evaluation.mesh_protocol import get_protocol
 
         f0 = seq[0]
         rec = evaluate_run_mesh(mesh, gt_mesh, seq.gt_poses(), f0.K, f0.width, f0.height, T_align=res.T_align,

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.geometry import diagonal_information, inv, pose_error, pose_from_tum, pose_to_tum
 from lrslam.pipeline.config import BackendConfig, RunConfig
 from lrslam.pipeline.trajectory import Trajectory
@@ -424,8 +424,8 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
     backend = None
     if p.backend == "graph":
         from lrslam.backend.graph import PoseGraph
-        from lrslam.frontend.keyframe_link import KeyframeLink
-        from lrslam.frontend.loop_closure import LoopCloser
+        from lrslam.backend.keyframe_link import KeyframeLink
+        from lrslam.backend.loop_closure import LoopCloser
 
         g = cfg.graph
         backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),

@@ -27,7 +27,7 @@ def plot_trajectories(path_png: str | Path, trajectories: dict[str, Trajectory],
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from lrslam.pipeline.evaluation.ate import compute_ate
+    from lrslam.evaluation.ate import compute_ate
 
     # 1. Positions (aligned to the GT when possible) and per-frame errors.
     curves: dict[str, np.ndarray] = {}

@@ -59,7 +59,7 @@ def _attach_file_log(out_dir: Path, append: bool = False) -> logging.Handler:
 
 
 def _open(path: str | Path, cfg: RunConfig):
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
 
     seq = open_sequence(path, reader=cfg.dataset.reader, options=cfg.reader_options())
     if len(seq) == 0:

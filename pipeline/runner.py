@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field as dc_field
 
 import numpy as np
 
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.errors import InputError
 from lrslam.pipeline.config import RunConfig
 from lrslam.pipeline.parts import build_parts

@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from lrslam.pipeline.batch_exec import SequentialExecutor
+from lrslam.tools.batch_exec import SequentialExecutor
 
 # tiny and fast (plumbing, not accuracy): 5 frames, few iterations, coarse mesh, no per-run plot
 TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_iters=10",
@@ -27,7 +27,7 @@ class Recording(SequentialExecutor):
 
 def make_sequences(root: Path) -> dict[str, Path]:
     """a/room and b/room (same folder name), bad/room (its 2nd depth image is corrupt: fails inside the job)."""
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     a = generate(root / "a" / "room", scene="room", trajectory="loop", n_frames=6, seed=1, width=160, height=120,
                  show_progress=False)
@@ -41,8 +41,8 @@ def make_sequences(root: Path) -> dict[str, Path]:
 def finished_batch(root: Path) -> dict:
     """A finished batch in ``root``: 3 sequences x (field, 2 seeds + frontend) = 9 jobs, the 3 of bad/room
     failing. Returns root, seqs, jobs, out (the batch folder) and the outcome."""
-    from lrslam.pipeline.batch import run_grid
-    from lrslam.pipeline.batch_grid import expand_grid
+    from lrslam.tools.batch import run_grid
+    from lrslam.tools.batch_grid import expand_grid
 
     seqs = make_sequences(root)
     jobs = expand_grid([str(seqs[k]) for k in ("a", "b", "bad")], ["field", "frontend"], seeds=2,

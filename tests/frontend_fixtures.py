@@ -3,7 +3,7 @@ Open3D's RaycastingScene. Colour is a smooth procedural function of the world po
 surface point get exactly the same colour (photometric consistency holds up to pixel sampling).
 
 Kept local to the frontend tests (small and dependency-free); the project's scene generator lives in
-``lrslam.frontend.synthetic``.
+``lrslam.datasets.synth``.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from lrslam.camera import intrinsics_matrix
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.geometry import inv, make_pose
 
 # Room [-2, 2] x [-1.5, 1.5] x [-2, 2] m (OpenCV-like world: y down) with three boxes inside.

@@ -12,7 +12,7 @@ from lrslam.backend.graph import GraphConfig, PoseGraph
 from lrslam.errors import InputError
 from lrslam.geometry import adjoint, diagonal_information
 from lrslam.geometry import exp_se3, inv, log_se3, make_pose, pose_error, random_pose, relative
-from lrslam.pipeline.evaluation.ate import compute_ate
+from lrslam.evaluation.ate import compute_ate
 
 gtsam = pytest.importorskip("gtsam")
 

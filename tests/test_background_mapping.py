@@ -16,8 +16,8 @@ TINY = ["field.tracking.iters=5", "field.mapping.iters=5", "field.mapping.first_
 
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory):
-    from lrslam.frontend.datasets import open_sequence
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets import open_sequence
+    from lrslam.datasets.synth.writer import generate
 
     path = generate(tmp_path_factory.mktemp("bg") / "room", scene="room", trajectory="loop", n_frames=12, seed=3,
                     width=160, height=120, show_progress=False)
@@ -67,7 +67,7 @@ def test_tracking_reads_the_frozen_copy_until_the_round_is_taken(frames):
 
 
 def _run(cfg, seq, fr):
-    from lrslam.pipeline.evaluation.ate import compute_ate
+    from lrslam.evaluation.ate import compute_ate
     from lrslam.pipeline.runner import SlamRunner
 
     f0 = fr[0]

@@ -41,7 +41,7 @@ def _strict_json(path: Path) -> dict:
 # ---------------------------------------------------------------------------------------------------- inputs
 def make_world(root: Path) -> dict[str, str]:
     """Every bad (and good) input the cases refer to, under ``root``; returns ``{placeholder: path}``."""
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     root.mkdir(parents=True, exist_ok=True)
     w: dict[str, Path] = {"tmp": root}
@@ -389,7 +389,7 @@ def long_seq(tmp_path_factory) -> Path:
     """A 60-frame sequence: field mode with few iterations takes 0.04-0.3 s per frame, so 0.1-0.5 s after the
     first partial save (frame 2 or 3) the run is still far from its end, however fast the machine (12 frames
     were not: on a fast VM the run finished within the 0.5 s the test waited)."""
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     return generate(tmp_path_factory.mktemp("kill") / "seq", scene="room", trajectory="loop", n_frames=KILL_FRAMES,
                     seed=1, width=160, height=120, show_progress=False)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from lrslam.errors import InputError
-from lrslam.pipeline.batch import run_grid
-from lrslam.pipeline.batch_exec import SequentialExecutor, make_executor, ray_available
-from lrslam.pipeline.batch_grid import check_jobs, expand_grid, job_status, parse_sequence
+from lrslam.tools.batch import run_grid
+from lrslam.tools.batch_exec import SequentialExecutor, make_executor, ray_available
+from lrslam.tools.batch_grid import check_jobs, expand_grid, job_status, parse_sequence
 
 from batch_fixtures import TINY, Recording
 
@@ -60,7 +60,7 @@ def test_sequence_argument_parsing(tmp_path):
 
 
 def test_every_path_is_checked_before_the_first_job(tmp_path):
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     ok = generate(tmp_path / "ok", n_frames=3, width=32, height=24, show_progress=False)
     jobs = expand_grid([str(ok), str(tmp_path / "missing_seq")], ["frontend"], preset="synthetic")

@@ -13,9 +13,9 @@ from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from lrslam.errors import DatasetError, InputError
-from lrslam.frontend.datasets import READERS, ReaderOptions, detect_layout, open_sequence
-from lrslam.frontend.datasets.association import associate, interpolate_poses
-from lrslam.frontend.datasets.tum import FREIBURG_CAMERAS, freiburg_camera_from_name
+from lrslam.datasets import READERS, ReaderOptions, detect_layout, open_sequence
+from lrslam.datasets.association import associate, interpolate_poses
+from lrslam.datasets.tum import FREIBURG_CAMERAS, freiburg_camera_from_name
 from lrslam.geometry import make_pose
 from lrslam.trajectory_io import write_tum
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lrslam.frontend.datasets import ReaderOptions, detect_layout, open_sequence
-from lrslam.frontend.datasets.association import associate
-from lrslam.frontend.datasets.parsing import read_file_list
-from lrslam.frontend.datasets.tum import FREIBURG_CAMERAS
+from lrslam.datasets import ReaderOptions, detect_layout, open_sequence
+from lrslam.datasets.association import associate
+from lrslam.datasets.parsing import read_file_list
+from lrslam.datasets.tum import FREIBURG_CAMERAS
 from lrslam.geometry import is_valid_pose, pose_error
 from lrslam.trajectory_io import read_tum
 

@@ -7,9 +7,9 @@ import pytest
 
 from lrslam.errors import InputError
 from lrslam.geometry import make_pose, random_pose
-from lrslam.pipeline.evaluation.alignment import umeyama
-from lrslam.pipeline.evaluation.association import associate
-from lrslam.pipeline.evaluation.ate import ate_from_files, compute_ate, compute_rpe
+from lrslam.evaluation.alignment import umeyama
+from lrslam.evaluation.association import associate
+from lrslam.evaluation.ate import ate_from_files, compute_ate, compute_rpe
 from lrslam.trajectory_io import write_tum
 
 

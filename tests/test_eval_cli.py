@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from lrslam.errors import InputError
 from lrslam.geometry import make_pose, random_pose
-from lrslam.pipeline.evaluation.ate import compute_ate
-from lrslam.pipeline.evaluation.cli import eval_app
+from lrslam.evaluation.ate import compute_ate
+from lrslam.cli.evaluate import eval_app
 from lrslam.pipeline.plots import plot_trajectories
 from lrslam.trajectory_io import write_tum
 

@@ -11,7 +11,7 @@ import trimesh
 from lrslam.camera import backproject_depth, intrinsics_matrix, transform_points
 from lrslam.errors import InputError
 from lrslam.geometry import is_valid_pose, make_pose, random_pose
-from lrslam.pipeline.evaluation.mesh_metrics import (cull_mesh, depth_l1, load_mesh, random_views,
+from lrslam.evaluation.mesh_metrics import (cull_mesh, depth_l1, load_mesh, random_views,
                                                      reconstruction_metrics, render_depth)
 
 W, H = 64, 48

@@ -10,11 +10,11 @@ from scipy.spatial.transform import Rotation
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import InputError
 from lrslam.geometry import is_valid_pose, make_pose
-from lrslam.pipeline.evaluation.ate import compute_ate
-from lrslam.pipeline.evaluation.depth_views import bbox_views, depth_l1_all_pixels
-from lrslam.pipeline.evaluation.mesh_eval import evaluate_mesh, evaluate_run_mesh
-from lrslam.pipeline.evaluation.mesh_metrics import icp_align, keep_seen_faces
-from lrslam.pipeline.evaluation.mesh_protocol import PROTOCOLS, get_protocol
+from lrslam.evaluation.ate import compute_ate
+from lrslam.evaluation.depth_views import bbox_views, depth_l1_all_pixels
+from lrslam.evaluation.mesh_eval import evaluate_mesh, evaluate_run_mesh
+from lrslam.evaluation.mesh_metrics import icp_align, keep_seen_faces
+from lrslam.evaluation.mesh_protocol import PROTOCOLS, get_protocol
 
 W, H = 64, 48
 K = intrinsics_matrix(40.0, 40.0, 31.5, 23.5)

@@ -10,10 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from lrslam.frontend.datasets import ReaderOptions, open_sequence
+from lrslam.datasets import ReaderOptions, open_sequence
 from lrslam.geometry import make_pose
-from lrslam.pipeline.evaluation.ate import compute_ate, compute_run_ate, ground_truth_samples
-from lrslam.pipeline.evaluation.cli import eval_app
+from lrslam.evaluation.ate import compute_ate, compute_run_ate, ground_truth_samples
+from lrslam.cli.evaluate import eval_app
 from lrslam.trajectory_io import read_tum, write_tum
 
 T0 = 1305031102.175304

@@ -12,9 +12,9 @@ from lrslam import camera
 from lrslam.field.mapper import MapperConfig
 from lrslam.field.mesh import MeshConfig, extract_mesh
 from lrslam.field.slam import FieldSLAM, FieldSLAMConfig
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.geometry import pose_error, random_pose
-from lrslam.pipeline.evaluation.alignment import umeyama
+from lrslam.evaluation.alignment import umeyama
 
 
 @contextmanager

@@ -9,7 +9,7 @@ import pytest
 
 from frontend_fixtures import T_W_C_REF, look_at, make_frame, make_room
 from lrslam.errors import InputError
-from lrslam.frontend.loop_closure import LoopCloser, LoopClosureConfig
+from lrslam.backend.loop_closure import LoopCloser, LoopClosureConfig
 from lrslam.geometry import exp_se3, inv, pose_error
 
 
@@ -37,7 +37,7 @@ def _poses(frames, T6):
 
 
 def test_revisit_is_detected_and_verified(scene, caplog):
-    caplog.set_level(logging.INFO, logger="lrslam.frontend.loop_closure")
+    caplog.set_level(logging.INFO, logger="lrslam.backend.loop_closure")
     _, frames = scene
     closer = _closer(frames)
     kf = frames[6]
@@ -62,7 +62,7 @@ def test_revisit_is_detected_and_verified(scene, caplog):
 
 
 def test_false_candidate_is_rejected_with_a_reason(scene, caplog):
-    caplog.set_level(logging.INFO, logger="lrslam.frontend.loop_closure")
+    caplog.set_level(logging.INFO, logger="lrslam.backend.loop_closure")
     room, frames = scene
     closer = _closer(frames)
     # Drift claims this keyframe sits next to keyframe 0, but its images show another part of the room.

@@ -9,7 +9,7 @@ import pytest
 
 from frontend_fixtures import T_W_C_REF, make_frame, make_room
 from lrslam.errors import InputError
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.frontend.odometry import Odometry, OdometryConfig
 from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, fallback_information
 from lrslam.geometry import exp_se3, inv, pose_error

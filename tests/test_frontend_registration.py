@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from frontend_fixtures import T_W_C_REF, look_at, make_frame, make_room
-from lrslam.frontend.frame import Frame
+from lrslam.frame import Frame
 from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates, fallback_information,
                                           register_rgbd)
 from lrslam.frontend.rgbd_view import as_view, assess_alignment

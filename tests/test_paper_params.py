@@ -121,7 +121,7 @@ def test_params_command_reports_table1_totals():
     import typer
     from typer.testing import CliRunner
 
-    from lrslam.pipeline.cli import params
+    from lrslam.cli.commands import params
 
     app = typer.Typer()
     app.command()(params)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lrslam.backend.graph import GraphConfig, PoseGraph
-from lrslam.frontend.frame import Frame
-from lrslam.frontend.keyframe_link import KeyframeLinkMeasurement
-from lrslam.frontend.loop_closure import LoopConstraint
+from lrslam.frame import Frame
+from lrslam.backend.keyframe_link import KeyframeLinkMeasurement
+from lrslam.backend.loop_closure import LoopConstraint
 from lrslam.geometry import diagonal_information, exp_se3, inv, make_pose, pose_error
 from lrslam.pipeline.config import BackendConfig, build_config
 from lrslam.pipeline.parts import (ConstantVelocitySeeder, EveryNKeyframer, GraphBackend, NoRefiner,
@@ -190,7 +190,7 @@ def test_field_seeders_closed_forms():
 def test_keyframe_link_falls_back_to_the_chained_odometry_with_propagated_covariance():
     """The frontend's own keyframe-to-keyframe factor: when the direct registration fails (here: no depth), the
     chain of the frame-to-frame increments, with their covariances propagated (closed form)."""
-    from lrslam.frontend.keyframe_link import KeyframeLink
+    from lrslam.backend.keyframe_link import KeyframeLink
     from lrslam.frontend.odometry import OdometryConfig, OdometryResult
     from lrslam.geometry import propagate_covariance
 

@@ -18,7 +18,7 @@ TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_
 
 @pytest.fixture(scope="module")
 def tiny_sequence(tmp_path_factory):
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     out = tmp_path_factory.mktemp("seq") / "room"
     generate(out, scene="room", trajectory="loop", n_frames=12, seed=1, width=160, height=120, show_progress=False)

@@ -105,8 +105,8 @@ def test_counts_and_iterations_are_validated(override):
 def test_tsdf_grows_past_its_initial_block_count(tmp_path):
     """The TSDF starts small (memory follows the surface) and its hash map grows: a start of 20 blocks gives the
     same mesh as a start big enough for everything."""
-    from lrslam.frontend.datasets import open_sequence
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets import open_sequence
+    from lrslam.datasets.synth.writer import generate
     from lrslam.pipeline.tsdf import tsdf_mesh
 
     seq = open_sequence(generate(tmp_path / "s", scene="room", trajectory="circle", n_frames=4, width=160, height=120,
@@ -137,7 +137,7 @@ def test_set_threads_sets_torch_and_the_environment(monkeypatch):
 
 
 def test_default_preset_follows_the_dataset_and_the_device(tmp_path):
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
     from lrslam.pipeline.config_source import default_preset
 
     seq = generate(tmp_path / "s", scene="room", trajectory="circle", n_frames=2, width=80, height=60,

@@ -28,7 +28,7 @@ TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
 
     return generate(tmp_path_factory.mktemp("resume") / "room", scene="room", trajectory="loop", n_frames=16,
                     seed=1, width=160, height=120, show_progress=False)
@@ -60,7 +60,7 @@ def _through_file(state: dict, tmp_path: Path) -> dict:
 
 
 def _frames(seq_dir, n):
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
 
     seq = open_sequence(seq_dir)
     return seq, [seq[i] for i in range(n)]
@@ -70,9 +70,9 @@ def _frames(seq_dir, n):
 def test_frontend_parts_round_trip(seq_dir, tmp_path):
     """Odometry, keyframe policy, keyframe link and loop closer: the restored part has the same state and gives
     the same answer for the next frame."""
-    from lrslam.frontend.keyframe_link import KeyframeLink
+    from lrslam.backend.keyframe_link import KeyframeLink
     from lrslam.frontend.keyframes import KeyframeConfig, KeyframePolicy
-    from lrslam.frontend.loop_closure import LoopCloser, LoopClosureConfig
+    from lrslam.backend.loop_closure import LoopCloser, LoopClosureConfig
     from lrslam.frontend.odometry import Odometry, OdometryConfig
     from lrslam.pipeline.determinism import open3d_threads
 

@@ -88,9 +88,9 @@ def test_run_status():
 
 
 def test_prepass_bound_covers_every_view_of_a_walking_camera(tmp_path):
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
     from lrslam.frontend.odometry import OdometryConfig
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.writer import generate
     from lrslam.pipeline.auto_bound import bound_from_frame, bound_from_prepass, fraction_outside
 
     seq = open_sequence(generate(tmp_path / "s", scene="room", trajectory="loop", n_frames=12, seed=1, width=160,
@@ -123,7 +123,7 @@ def test_run_config_yaml_is_accepted_back(tmp_path):
 
 
 def test_read_tum_can_keep_invalid_lines_as_missing_poses(tmp_path):
-    from lrslam.frontend.datasets.association import interpolate_poses
+    from lrslam.datasets.association import interpolate_poses
     from lrslam.trajectory_io import TrajectoryFormatError, read_tum
 
     f = tmp_path / "gt.txt"

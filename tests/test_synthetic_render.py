@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from lrslam.camera import backproject_depth, pixel_directions, transform_points
-from lrslam.frontend.synthetic.noise import NoiseConfig, apply_noise, kinect_sigma, noise_preset
-from lrslam.frontend.synthetic.render import Renderer, default_intrinsics
-from lrslam.frontend.synthetic.scene import make_scene
-from lrslam.frontend.synthetic.trajectories import look_rotation
+from lrslam.datasets.synth.noise import NoiseConfig, apply_noise, kinect_sigma, noise_preset
+from lrslam.datasets.synth.render import Renderer, default_intrinsics
+from lrslam.datasets.synth.scene import make_scene
+from lrslam.datasets.synth.trajectories import look_rotation
 from lrslam.geometry import make_pose
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from lrslam.errors import InputError
-from lrslam.frontend.synthetic.scene import SCENES, make_scene
-from lrslam.frontend.synthetic.trajectories import TRAJECTORIES, camera_region, make_trajectory, motion_per_frame
+from lrslam.datasets.synth.scene import SCENES, make_scene
+from lrslam.datasets.synth.trajectories import TRAJECTORIES, camera_region, make_trajectory, motion_per_frame
 from lrslam.geometry import is_valid_pose, pose_error
 
 

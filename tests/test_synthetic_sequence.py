@@ -9,11 +9,11 @@ import pytest
 from lrslam.camera import backproject_depth, intrinsics_matrix, transform_points
 from lrslam.config import load_yaml
 from lrslam.errors import InputError
-from lrslam.frontend.synthetic.noise import NoiseConfig
-from lrslam.frontend.synthetic.render import default_intrinsics
-from lrslam.frontend.synthetic.scene import make_scene
-from lrslam.frontend.synthetic.trajectories import make_trajectory
-from lrslam.frontend.synthetic.writer import generate, write_sequence
+from lrslam.datasets.synth.noise import NoiseConfig
+from lrslam.datasets.synth.render import default_intrinsics
+from lrslam.datasets.synth.scene import make_scene
+from lrslam.datasets.synth.trajectories import make_trajectory
+from lrslam.datasets.synth.writer import generate, write_sequence
 from lrslam.trajectory_io import read_tum
 
 N = 8
@@ -87,7 +87,7 @@ def test_acceptance_backprojected_depth_lies_on_the_gt_mesh_own_loading(sequence
 
 
 def test_acceptance_backprojected_depth_lies_on_the_gt_mesh_reader(sequence):
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
 
     seq = open_sequence(sequence)
     frames = list(seq)
@@ -101,7 +101,7 @@ def test_acceptance_backprojected_depth_lies_on_the_gt_mesh_reader(sequence):
 def test_noisy_sequence_is_off_the_mesh_by_the_noise(tmp_path):
     out = generate(tmp_path / "noisy", scene="room", trajectory="circle", n_frames=2, seed=0, width=160,
                    height=120, noise=NoiseConfig(depth_sigma=0.01), show_progress=False)
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
 
     median, _ = _check_on_mesh(out / "gt_mesh.ply", [(f.depth, f.K, f.T_w_c_gt) for f in open_sequence(out)])
     assert 0.004 < median < 0.009  # |N(0, 1 cm)| along rays at grazing-to-frontal angles: median <= 6.7 mm
@@ -139,7 +139,7 @@ def test_cli(tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from lrslam.frontend.synthetic.cli import synth
+    from lrslam.cli.synth import synth
 
     app = typer.Typer()
     app.command()(synth)

@@ -17,10 +17,10 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from lrslam.errors import InputError
-from lrslam.pipeline.evaluation.depth_views import bbox_views, depth_l1_all_pixels
-from lrslam.pipeline.evaluation.mesh_metrics import (depth_l1, icp_align, keep_seen_faces, load_mesh, random_views,
+from lrslam.evaluation.depth_views import bbox_views, depth_l1_all_pixels
+from lrslam.evaluation.mesh_metrics import (depth_l1, icp_align, keep_seen_faces, load_mesh, random_views,
                                                      reconstruction_metrics, seen_vertices)
-from lrslam.pipeline.evaluation.mesh_protocol import MeshProtocol, get_protocol
+from lrslam.evaluation.mesh_protocol import MeshProtocol, get_protocol
 
 __all__ = ["evaluate_mesh", "evaluate_run_mesh"]
 
@@ -37,7 +37,7 @@ def evaluate_mesh(est_mesh: trimesh.Trimesh | str | Path, gt_mesh: trimesh.Trime
     and ``width x height`` pixels: both meshes are culled against them (None: no culling, and no unseen-point
     test for the depth views; a ``"trajectory"`` depth L1 then needs poses). ``max_depth``: culling range, metres;
     ``stride``: cull with every ``stride``-th pose (None: the protocol's ``max_poses`` rule).
-    ``protocol``: :data:`~lrslam.pipeline.evaluation.mesh_protocol.PROTOCOLS` entry (default ``eslam``).
+    ``protocol``: :data:`~lrslam.evaluation.mesh_protocol.PROTOCOLS` entry (default ``eslam``).
 
     Returns ``accuracy_cm``, ``completion_cm``, ``completion_ratio`` (%), ``n_est`` / ``n_gt`` (faces after
     culling), ``depth_l1_cm`` (when ``depth_views > 0``), ``icp_rotation_deg`` / ``icp_translation_cm`` (the ICP

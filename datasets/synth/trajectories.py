@@ -1,6 +1,6 @@
 """Hand-held-like camera trajectories inside a synthetic room.
 
-World frame (see :mod:`lrslam.frontend.synthetic.scene`): metres, z up, floor at the bottom of the bound.
+World frame (see :mod:`lrslam.datasets.synth.scene`): metres, z up, floor at the bottom of the bound.
 Poses are camera-to-world ``T_w_c`` (N, 4, 4) float64 with OpenCV camera axes (x right, y down, z forward,
 :mod:`lrslam.camera`).
 
@@ -37,7 +37,7 @@ def camera_region(bound: np.ndarray) -> np.ndarray:
     half-widths in the 4 x 3 m ``room``), which leaves a >= 0.45 m band along the walls of rooms >= 2.5 m for
     furniture;
     z: from 40 % to 65 % of the bound height (about 1.0-1.65 m above the floor in a 2.5 m room).
-    :func:`lrslam.frontend.synthetic.scene.make_scene` places objects so that they stay at least 0.5 m away from
+    :func:`lrslam.datasets.synth.scene.make_scene` places objects so that they stay at least 0.5 m away from
     this box (low objects may sit below it).
     """
     bound = np.asarray(bound, dtype=np.float64).reshape(3, 2)

@@ -25,10 +25,10 @@ import numpy as np
 from lrslam.camera import check_intrinsics
 from lrslam.config import load_yaml, save_yaml
 from lrslam.errors import InputError
-from lrslam.frontend.synthetic.noise import NoiseConfig, apply_noise
-from lrslam.frontend.synthetic.render import Renderer, default_intrinsics
-from lrslam.frontend.synthetic.scene import Scene, make_scene
-from lrslam.frontend.synthetic.trajectories import make_trajectory
+from lrslam.datasets.synth.noise import NoiseConfig, apply_noise
+from lrslam.datasets.synth.render import Renderer, default_intrinsics
+from lrslam.datasets.synth.scene import Scene, make_scene
+from lrslam.datasets.synth.trajectories import make_trajectory
 from lrslam.geometry import is_valid_pose
 from lrslam.trajectory_io import write_tum
 
@@ -165,7 +165,7 @@ def generate(out_dir: str | Path, scene: str = "room", trajectory: str = "circle
              show_progress: bool = True, fps: float = 30.0, reuse: bool = True) -> Path:
     """Make scene + trajectory (same seed) and write the sequence to ``out_dir``; returns the path.
 
-    Intrinsics: :func:`~lrslam.frontend.synthetic.render.default_intrinsics` (fx = fy = 260 at 320 x 240).
+    Intrinsics: :func:`~lrslam.datasets.synth.render.default_intrinsics` (fx = fy = 260 at 320 x 240).
     With ``reuse`` a folder that already holds the identical, complete sequence (same scene.yaml) is returned
     as is (demo re-runs, cached test fixtures).
     """

@@ -17,7 +17,7 @@ every frame has a sample within 0.005 s, so both tolerances keep the same pairs.
 (greedy by time difference); evo pairs each pose of the shorter trajectory with its nearest, which is the same
 whenever frames are further apart than ground-truth samples (30 Hz frames, 100 Hz ground truth).
 
-The matching itself is :func:`lrslam.frontend.datasets.association.associate` (shared with the dataset readers,
+The matching itself is :func:`lrslam.datasets.association.associate` (shared with the dataset readers,
 which pair colour and depth images the same way); this wrapper validates the stamps, returns two index arrays and
 turns "nothing matched" into a one-line :class:`InputError`.
 """
@@ -40,7 +40,7 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = 0.02) -> tuple
     Returns ``(idx_a, idx_b)``: int64 index arrays of equal length, sorted by ``ts_a[idx_a]``.
     Raises :class:`InputError` when an input is not a finite non-empty 1-D array or when no pair associates.
     """
-    from lrslam.frontend.datasets.association import associate as associate_pairs
+    from lrslam.datasets.association import associate as associate_pairs
 
     a = _stamps(ts_a, "ts_a")
     b = _stamps(ts_b, "ts_b")

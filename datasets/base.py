@@ -20,9 +20,9 @@ import numpy as np
 
 from lrslam.camera import check_intrinsics
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.image_ops import ImageGeometry, Undistorter, read_color, read_depth
-from lrslam.frontend.datasets.options import ReaderOptions
-from lrslam.frontend.frame import Frame
+from lrslam.datasets.image_ops import ImageGeometry, Undistorter, read_color, read_depth
+from lrslam.datasets.options import ReaderOptions
+from lrslam.frame import Frame
 
 __all__ = ["Sequence", "SourceIndex"]
 

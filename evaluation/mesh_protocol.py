@@ -18,7 +18,7 @@ protocol                face kept   poses       occlusion  ICP        points    
 * ICP: ``registration_icp`` point-to-point between the meshes' vertices, threshold 0.1 m, from identity, applied
   to the estimate before every metric.
 * Points: ESLAM's ``calc_3d_metric(num_points=450000)``; NICE-SLAM samples 200,000.
-* Depth L1: :mod:`~lrslam.pipeline.evaluation.depth_views` (NICE-SLAM's views; all pixels count) or, for
+* Depth L1: :mod:`~lrslam.evaluation.depth_views` (NICE-SLAM's views; all pixels count) or, for
   ``lrslam-v0``, views within 10 cm / 10 degrees of the trajectory counting pixels that see GT surface.
 """
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from lrslam.camera import intrinsics_matrix
-from lrslam.frontend.datasets.base import Sequence, SourceIndex
-from lrslam.frontend.datasets.parsing import numbered_files, read_matrix, read_pose_files
-from lrslam.frontend.datasets.registry import register
-from lrslam.frontend.datasets.replica import NOMINAL_FPS
+from lrslam.datasets.base import Sequence, SourceIndex
+from lrslam.datasets.parsing import numbered_files, read_matrix, read_pose_files
+from lrslam.datasets.registry import register
+from lrslam.datasets.replica import NOMINAL_FPS
 
 __all__ = ["SevenScenesReader", "SEVEN_SCENES_INTRINSICS", "SEVEN_SCENES_DEPTH_SCALE"]
 

@@ -1,7 +1,7 @@
 """Reader for synthetic scenes written by ``lrslam synth`` (``synthetic``).
 
 Layout: the TUM layout (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, images; see
-:mod:`lrslam.frontend.datasets.tum` for association and ground truth) plus
+:mod:`lrslam.datasets.tum` for association and ground truth) plus
 
 * ``scene.yaml`` with at least ``intrinsics: {fx, fy, cx, cy, width, height}`` (pixels), ``depth_scale``
   (raw units per metre, 5000 like TUM) and ``bound: [[xmin, xmax], [ymin, ymax], [zmin, zmax]]`` (metres,
@@ -21,9 +21,9 @@ from pydantic import BaseModel, ConfigDict, PositiveFloat, PositiveInt, Validati
 from lrslam.camera import intrinsics_matrix
 from lrslam.config import load_yaml
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.base import SourceIndex
-from lrslam.frontend.datasets.registry import register
-from lrslam.frontend.datasets.tum import TumReader
+from lrslam.datasets.base import SourceIndex
+from lrslam.datasets.registry import register
+from lrslam.datasets.tum import TumReader
 
 __all__ = ["SyntheticReader", "SceneInfo"]
 

@@ -140,7 +140,7 @@ def check_jobs(jobs: list[Job], out: Path) -> None:
     naming the path) on the first problem."""
     import json
 
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
     from lrslam.pipeline.config import RunConfig
     from lrslam.pipeline.run_folder import check_output_folder, check_run_folder
 

@@ -25,7 +25,7 @@ import trimesh
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import InputError
-from lrslam.pipeline.evaluation.mesh_metrics import load_mesh, render_depth
+from lrslam.evaluation.mesh_metrics import load_mesh, render_depth
 
 __all__ = ["NICE_WIDTH", "NICE_HEIGHT", "NICE_FOCAL", "FAR_M", "nice_intrinsics", "bbox_views", "depth_l1_all_pixels"]
 

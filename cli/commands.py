@@ -119,7 +119,7 @@ def run(
     loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
     check_run_folder(out, overwrite)
     if demo:
-        from lrslam.frontend.synthetic.writer import generate
+        from lrslam.datasets.synth.writer import generate
 
         path = out / "sequence"
         if not (path / "scene.yaml").is_file():
@@ -136,7 +136,7 @@ def run(
 
 
 def _demo_noise():
-    from lrslam.frontend.synthetic.noise import NoiseConfig
+    from lrslam.datasets.synth.noise import NoiseConfig
 
     return NoiseConfig(kinect=True)
 
@@ -216,9 +216,9 @@ def batch(
     Exit code 1 when any job failed (each failed job is named on stderr), 2 on a bad path or setting (before any
     job starts), 3 when any run is degraded.
     """
-    from lrslam.pipeline.batch import run_grid
-    from lrslam.pipeline.batch_exec import make_executor
-    from lrslam.pipeline.batch_grid import check_jobs, expand_grid, is_complete
+    from lrslam.tools.batch import run_grid
+    from lrslam.tools.batch_exec import make_executor
+    from lrslam.tools.batch_grid import check_jobs, expand_grid, is_complete
 
     setup_console_logging()
     ov = list(overrides or []) + ([f"dataset.options.max_frames={max_frames}"] if max_frames else [])
@@ -252,7 +252,7 @@ def report(
 ) -> None:
     """Write RUNS_DIR/report.html (self-contained: tables, ATE box plots over seeds, trajectories on ground truth,
     time per stage, failed jobs) and comparison.md / comparison.csv; prints the table."""
-    from lrslam.pipeline.report import write_report
+    from lrslam.tools.report import write_report
 
     setup_console_logging()
     page = write_report(runs_dir)

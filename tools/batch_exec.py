@@ -43,7 +43,7 @@ def _worker_info() -> dict[str, Any]:
 
 
 def run_job(job: dict[str, Any], batch_dir: str, cpus: int | None = None) -> dict[str, Any]:
-    """Run one job (a :class:`~lrslam.pipeline.batch_grid.Job` as a dict) into ``batch_dir/<run_dir>``.
+    """Run one job (a :class:`~lrslam.tools.batch_grid.Job` as a dict) into ``batch_dir/<run_dir>``.
 
     ``cpus``: torch threads for the job (the numba kernels follow torch; None: leave them), restored after it.
     Returns ``{"name", "status", "wall_s", "worker", "error"?, "metrics"?}`` (``worker``: pid, torch threads and
@@ -80,7 +80,7 @@ def _note_failure(run_dir: Path, error: str) -> None:
     if (run_dir / "run.log").is_file():
         stamp = time.strftime("%Y-%m-%d %H:%M:%S")
         with open(run_dir / "run.log", "a") as f:
-            f.write(f"{stamp},000 ERROR lrslam.pipeline.batch: job failed: {error}\n")
+            f.write(f"{stamp},000 ERROR lrslam.tools.batch: job failed: {error}\n")
 
 
 def ray_available() -> bool:

@@ -1,11 +1,11 @@
 """Reconstruction metrics as NICE-SLAM / ESLAM: accuracy, completion, completion ratio, depth L1; mesh culling.
 
-Building blocks (the protocols that combine them are :mod:`~lrslam.pipeline.evaluation.mesh_protocol`, the
-evaluation itself :mod:`~lrslam.pipeline.evaluation.mesh_eval`): :func:`cull_mesh` drops faces outside every
+Building blocks (the protocols that combine them are :mod:`~lrslam.evaluation.mesh_protocol`, the
+evaluation itself :mod:`~lrslam.evaluation.mesh_eval`): :func:`cull_mesh` drops faces outside every
 camera frustum (or hidden in every view), :func:`icp_align` refines the estimate onto the ground truth,
 :func:`reconstruction_metrics` samples points on both surfaces and measures nearest-neighbour distances, and
 :func:`depth_l1` compares depth maps rendered from given views (:func:`random_views`: near a trajectory;
-:mod:`~lrslam.pipeline.evaluation.depth_views`: NICE-SLAM's views in the GT bounding box).
+:mod:`~lrslam.evaluation.depth_views`: NICE-SLAM's views in the GT bounding box).
 Depth rendering uses Open3D's ``RaycastingScene``; see DESIGN.md for its half-pixel principal-point offset.
 """
 

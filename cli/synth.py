@@ -31,8 +31,8 @@ def synth(
     fps: Annotated[float, typer.Option(help="Frame rate for the timestamps, Hz.")] = 30.0,
 ) -> None:
     """Render a synthetic RGB-D sequence of a textured procedural room with exact ground truth."""
-    from lrslam.frontend.synthetic.noise import noise_preset
-    from lrslam.frontend.synthetic.writer import generate
+    from lrslam.datasets.synth.noise import noise_preset
+    from lrslam.datasets.synth.writer import generate
 
     from pydantic import ValidationError
 

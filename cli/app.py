@@ -50,9 +50,9 @@ def _root(
 def _register() -> None:
     if getattr(app, "_lrslam_registered", False):
         return
-    from lrslam.frontend.synthetic.cli import synth
-    from lrslam.pipeline.cli import batch, params, report, run
-    from lrslam.pipeline.evaluation.cli import eval_app
+    from lrslam.cli.synth import synth
+    from lrslam.cli.commands import batch, params, report, run
+    from lrslam.cli.evaluate import eval_app
 
     app.command("synth")(synth)
     app.add_typer(eval_app, name="eval")

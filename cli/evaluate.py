@@ -29,7 +29,7 @@ def ate(
     as_json: Annotated[bool, typer.Option("--json", help="print a JSON object instead of text")] = False,
 ) -> None:
     """Absolute trajectory error (cm) after timestamp association and SE(3) alignment (no scale)."""
-    from lrslam.pipeline.evaluation.ate import ate_from_files
+    from lrslam.evaluation.ate import ate_from_files
 
     res = ate_from_files(est, gt, max_dt=max_dt, align=align)
     if as_json:
@@ -81,10 +81,10 @@ def mesh(
     from dataclasses import replace
 
     from lrslam.camera import intrinsics_matrix
-    from lrslam.pipeline.evaluation.ate import compute_ate, read_trajectory
-    from lrslam.pipeline.evaluation.mesh_eval import evaluate_mesh
-    from lrslam.pipeline.evaluation.mesh_metrics import load_mesh
-    from lrslam.pipeline.evaluation.mesh_protocol import get_protocol
+    from lrslam.evaluation.ate import compute_ate, read_trajectory
+    from lrslam.evaluation.mesh_eval import evaluate_mesh
+    from lrslam.evaluation.mesh_metrics import load_mesh
+    from lrslam.evaluation.mesh_protocol import get_protocol
 
     # 1. Inputs.
     proto = get_protocol(protocol, n_points=n_points, face_rule=face_rule, icp=icp, depth_views=depth_views,

@@ -1,12 +1,12 @@
 """Trajectory accuracy: absolute trajectory error (ATE) and relative pose error (RPE), in cm / degrees.
 
 Protocol (as ESLAM / NICE-SLAM and TUM's ``evaluate_ate.py``): associate estimated and ground-truth poses by
-timestamp (:func:`~lrslam.pipeline.evaluation.association.associate`), align the estimated camera positions to
+timestamp (:func:`~lrslam.evaluation.association.associate`), align the estimated camera positions to
 the ground-truth ones with a rigid SE(3) Umeyama fit (no scale), then take statistics of the per-frame
 translation error ``||p_gt - (R p_est + t)||``. Cross-checked against ``evo_ape`` in the tests.
 
 A run and ``lrslam eval ate`` use the same association (the nearest ground-truth *sample*, see
-:mod:`~lrslam.pipeline.evaluation.association`): a run evaluates with :func:`compute_run_ate`, which reads the
+:mod:`~lrslam.evaluation.association`): a run evaluates with :func:`compute_run_ate`, which reads the
 dataset's raw ground truth (:func:`ground_truth_samples`), not the reader's per-frame interpolated poses, so
 ``lrslam eval ate run/trajectory.txt <dataset>/groundtruth.txt`` reproduces the run's number.
 """
@@ -22,8 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from lrslam.errors import InputError
 from lrslam.geometry import inv, make_pose
-from lrslam.pipeline.evaluation.alignment import umeyama
-from lrslam.pipeline.evaluation.association import associate
+from lrslam.evaluation.alignment import umeyama
+from lrslam.evaluation.association import associate
 from lrslam.trajectory_io import TrajectoryFormatError, read_tum
 
 __all__ = ["AteResult", "RpeResult", "compute_ate", "compute_rpe", "ate_from_files", "read_trajectory",
@@ -158,7 +158,7 @@ def ate_from_files(est_path: str | Path, gt_path: str | Path, max_dt: float = 0.
 def ground_truth_samples(seq) -> tuple[np.ndarray, np.ndarray] | None:
     """The ground truth a run is evaluated against, as raw samples: ``(timestamps (M,) s, T_w_c (M, 4, 4))``.
 
-    ``seq`` is a dataset :class:`~lrslam.frontend.datasets.Sequence`. For readers listed in
+    ``seq`` is a dataset :class:`~lrslam.datasets.Sequence`. For readers listed in
     :data:`RAW_GROUND_TRUTH_FILES` (TUM) this is the dataset's own trajectory file as written (100 Hz motion
     capture, all of it: association picks the samples); otherwise the per-frame ground truth of the selected
     frames, rows without ground truth dropped. None when the sequence has no ground truth.

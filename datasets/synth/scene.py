@@ -3,7 +3,7 @@
 World frame: metres, z up. The room is the box ``[-sx/2, sx/2] x [-sy/2, sy/2] x [0, sz]`` (floor at z = 0)
 with inward-facing walls, floor and ceiling; furniture boxes (yawed about z), cylinders standing on the floor
 and spheres (on top of boxes or on the floor) are placed so that they stay >= 0.5 m from the camera region of
-:func:`lrslam.frontend.synthetic.trajectories.camera_region` (low objects may sit below it).
+:func:`lrslam.datasets.synth.trajectories.camera_region` (low objects may sit below it).
 
 Every surface is one triangle mesh with edges of at most ``mesh_edge`` metres (default 2.5 cm) -- the same mesh
 is ray cast by the renderer and written as ``gt_mesh.ply``, so the ground truth is exact. Each triangle belongs
@@ -26,8 +26,8 @@ import numpy as np
 import trimesh
 
 from lrslam.errors import InputError
-from lrslam.frontend.synthetic import meshes
-from lrslam.frontend.synthetic.trajectories import camera_region
+from lrslam.datasets.synth import meshes
+from lrslam.datasets.synth.trajectories import camera_region
 
 __all__ = ["SCENES", "Primitive", "Scene", "make_scene"]
 

@@ -62,7 +62,7 @@ def _last_error(run_dir: Path) -> str:
         lines = (run_dir / "run.log").read_text().splitlines()
     except OSError:
         return "no metrics.json and no run.log"
-    failed = [ln.split("job failed: ", 1)[1] for ln in lines if " ERROR lrslam.pipeline.batch: job failed: " in ln]
+    failed = [ln.split("job failed: ", 1)[1] for ln in lines if " ERROR lrslam.tools.batch: job failed: " in ln]
     if failed:
         return failed[-1]
     errors = [ln.split(": ", 1)[-1] for ln in lines if " ERROR " in ln]
@@ -72,7 +72,7 @@ def _last_error(run_dir: Path) -> str:
 def _discover(root: Path) -> list[dict[str, Any]]:
     """Entries for every run folder below ``root`` (a folder with ``run.log``), keys from its config.yaml;
     sequences are named as in a batch (folder name, with parent folders where two share it)."""
-    from lrslam.pipeline.batch_grid import SequenceSpec, name_sequences
+    from lrslam.tools.batch_grid import SequenceSpec, name_sequences
 
     found = []
     for log_file in sorted(root.rglob("run.log")):
@@ -240,9 +240,9 @@ def write_tables(runs_dir: str | Path, entries: list[dict[str, Any]] | None = No
 # ------------------------------------------------------------------------------------------------ figures
 def _ground_truth(root: Path, e: dict[str, Any]):
     """The ground truth the run was evaluated against ((ts, poses) or None), from the run's own config."""
-    from lrslam.frontend.datasets import open_sequence
+    from lrslam.datasets import open_sequence
     from lrslam.pipeline.config import RECORD_KEYS, RunConfig
-    from lrslam.pipeline.evaluation.ate import ground_truth_samples
+    from lrslam.evaluation.ate import ground_truth_samples
 
     rec = _read_record(root / e["run_dir"]) or {}
     path = (rec.get("provenance") or {}).get("sequence") or e.get("sequence")
@@ -263,7 +263,7 @@ def _median_run(g: dict[str, Any]) -> dict[str, Any] | None:
 def _figures(root: Path, seq: str, by_variant: dict[str, dict[str, Any]]) -> list[tuple[str, Path]]:
     """(caption, png) for one sequence: the ATE box plot over seeds and the trajectories on ground truth."""
     from lrslam.pipeline.plots import plot_trajectories
-    from lrslam.pipeline.report_plots import ate_boxplot
+    from lrslam.tools.report_plots import ate_boxplot
     from lrslam.trajectory_io import read_tum
 
     files = root / FILES_DIR

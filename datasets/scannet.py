@@ -2,7 +2,7 @@
 
 Layout: ``color/<n>.jpg`` (1296x968), ``depth/<n>.png`` (uint16 millimetres, 640x480, 0 = invalid),
 ``pose/<n>.txt`` (4x4 camera-to-world, OpenCV camera axes; used as is, see
-:mod:`lrslam.frontend.datasets.replica` for how this was checked), ``intrinsic/intrinsic_depth.txt`` (4x4; its
+:mod:`lrslam.datasets.replica` for how this was checked), ``intrinsic/intrinsic_depth.txt`` (4x4; its
 top-left 3x3 is the depth camera's K). Frames are ordered by the number ``n``.
 
 * The colour image is resized to the depth image's size (as NICE-SLAM/ESLAM do; the colour camera's field of
@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.base import Sequence, SourceIndex
-from lrslam.frontend.datasets.parsing import numbered_files, read_matrix, read_pose_files
-from lrslam.frontend.datasets.registry import register
-from lrslam.frontend.datasets.replica import NOMINAL_FPS
+from lrslam.datasets.base import Sequence, SourceIndex
+from lrslam.datasets.parsing import numbered_files, read_matrix, read_pose_files
+from lrslam.datasets.registry import register
+from lrslam.datasets.replica import NOMINAL_FPS
 
 __all__ = ["ScanNetReader", "SCANNET_DEPTH_SCALE"]
 

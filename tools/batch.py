@@ -1,10 +1,10 @@
-"""Batch runs: a job grid (:mod:`lrslam.pipeline.batch_grid`) run by an executor (:mod:`lrslam.pipeline.batch_exec`:
+"""Batch runs: a job grid (:mod:`lrslam.tools.batch_grid`) run by an executor (:mod:`lrslam.tools.batch_exec`:
 Ray tasks or in-process), each job into its own run folder ``OUT/<sequence>/<variant>/s<seed>/``.
 
 :func:`run_grid` checks every path before the first job starts, skips jobs whose run folders are complete
 (so a re-run of a batch resumes it), shows one overall progress bar (done / failed / running) and a status line
 per job, rewrites ``OUT/batch.json`` (every job: settings, status, error) and the comparison tables
-(``comparison.md`` / ``comparison.csv``) as jobs finish, and writes the HTML report (:mod:`lrslam.pipeline.report`)
+(``comparison.md`` / ``comparison.csv``) as jobs finish, and writes the HTML report (:mod:`lrslam.tools.report`)
 at the end.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from lrslam.jsonio import dumps
-from lrslam.pipeline.batch_grid import Job, check_jobs, job_status
+from lrslam.tools.batch_grid import Job, check_jobs, job_status
 
 __all__ = ["run_grid", "run_batch", "BatchOutcome", "MANIFEST"]
 
@@ -98,7 +98,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def _save(out: Path, entries: list[dict[str, Any]], executor: str) -> None:
     """Rewrite ``batch.json`` and the comparison tables (called after every job)."""
-    from lrslam.pipeline.report import write_tables
+    from lrslam.tools.report import write_tables
 
     _write_atomic(out / MANIFEST, dumps({"executor": executor, "jobs": entries}, indent=2))
     try:
@@ -167,7 +167,7 @@ def run_grid(jobs: list[Job], out: str | Path, executor, progress: bool = True, 
         _save(out, list(entries.values()), desc)
     path = None
     if report:
-        from lrslam.pipeline.report import write_report
+        from lrslam.tools.report import write_report
 
         try:
             path = write_report(out)
@@ -181,7 +181,7 @@ def run_batch(sequences: list[str | Path], configs: dict[str, dict[str, Any]], o
     """Every sequence under every named config (e.g. ``{"field/s0": {...}, "fused/s0": {...}}``), one after
     another in this process with the threads as they are, into ``OUT/<sequence>/<label>/``; complete runs of
     the same settings are reused. Returns ``{sequence: {label: metrics or {"mode", "error"}}}``."""
-    from lrslam.pipeline.batch_exec import SequentialExecutor
+    from lrslam.tools.batch_exec import SequentialExecutor
 
     jobs = []
     for seq in sequences:

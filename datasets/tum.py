@@ -14,14 +14,14 @@ Layout: ``rgb.txt`` and ``depth.txt`` (``timestamp filename`` per line, ``#`` co
   the sequence still runs (``gt_poses()`` is None).
 * Camera, first that applies: (1) the intrinsics override of ``ReaderOptions`` (``--set
   dataset.options.fx=... fy= cx= cy=``, optional ``distortion=[k1,k2,p1,p2,k3]``; without it an ideal pinhole);
-  (2) ``intrinsics.yaml`` beside ``rgb.txt`` (format in :mod:`lrslam.frontend.datasets.camera_file`: ``fx, fy,
+  (2) ``intrinsics.yaml`` beside ``rgb.txt`` (format in :mod:`lrslam.datasets.camera_file`: ``fx, fy,
   cx, cy`` pixels, optional ``distortion`` and ``depth_scale``); (3) the published Freiburg 1/2/3 calibration
   (with its distortion model, 640x480 images) when ``freiburg1``/``fr1`` ... appears in the folder name or in
   ``rgb.txt``'s comment header (the source bag name). With none of them the reader stops with an error: a
   recording of another camera must not silently get a Freiburg calibration. With ``ReaderOptions.undistort``
   the colour image is undistorted (same pinhole K, like ESLAM); depth is left as is.
 
-A folder that also holds ``scene.yaml`` is a synthetic scene (:mod:`lrslam.frontend.datasets.synthetic`).
+A folder that also holds ``scene.yaml`` is a synthetic scene (:mod:`lrslam.datasets.synthetic`).
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ import numpy as np
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.association import MAX_DIFFERENCE, associate, interpolate_poses
-from lrslam.frontend.datasets.base import Sequence, SourceIndex
-from lrslam.frontend.datasets.camera_file import CAMERA_FILE, read_camera_file
-from lrslam.frontend.datasets.parsing import read_file_list
-from lrslam.frontend.datasets.registry import register
+from lrslam.datasets.association import MAX_DIFFERENCE, associate, interpolate_poses
+from lrslam.datasets.base import Sequence, SourceIndex
+from lrslam.datasets.camera_file import CAMERA_FILE, read_camera_file
+from lrslam.datasets.parsing import read_file_list
+from lrslam.datasets.registry import register
 from lrslam.trajectory_io import TrajectoryFormatError, read_tum
 
 __all__ = ["TumReader", "FREIBURG_CAMERAS", "freiburg_camera_from_name", "TUM_DEPTH_SCALE"]

@@ -2,10 +2,10 @@
 
 Usage::
 
-    from lrslam.frontend.datasets import ReaderOptions, open_sequence
+    from lrslam.datasets import ReaderOptions, open_sequence
 
     seq = open_sequence("data/tum-fr1-rpy", options=ReaderOptions(stride=2))  # reader auto-detected: "tum"
-    for frame in seq:  # lrslam.frontend.frame.Frame, images loaded lazily
+    for frame in seq:  # lrslam.frame.Frame, images loaded lazily
         ...
     gt = seq.gt_poses()  # (N, 4, 4) T_w_c or None; evaluation only
 
@@ -15,11 +15,11 @@ Every reader returns depth in metres (float32, 0 = invalid), colour as uint8 RGB
 ground-truth poses ``T_w_c`` with OpenCV camera axes.
 """
 
-from lrslam.frontend.datasets.base import Sequence, SourceIndex
-from lrslam.frontend.datasets.options import ReaderOptions
-from lrslam.frontend.datasets.registry import READERS, detect_layout, open_sequence, register
+from lrslam.datasets.base import Sequence, SourceIndex
+from lrslam.datasets.options import ReaderOptions
+from lrslam.datasets.registry import READERS, detect_layout, open_sequence, register
 
 # Importing the reader modules registers them (order = order of READERS).
-from lrslam.frontend.datasets import tum, synthetic, replica, scannet, sevenscenes  # noqa: E402,F401  isort: skip
+from lrslam.datasets import tum, synthetic, replica, scannet, sevenscenes  # noqa: E402,F401  isort: skip
 
 __all__ = ["open_sequence", "detect_layout", "READERS", "register", "ReaderOptions", "Sequence", "SourceIndex"]

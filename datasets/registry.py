@@ -1,6 +1,6 @@
 """The one registry of dataset readers (``name -> class``), layout auto-detection and :func:`open_sequence`.
 
-Readers register themselves with ``@register("name")``; importing :mod:`lrslam.frontend.datasets` imports
+Readers register themselves with ``@register("name")``; importing :mod:`lrslam.datasets` imports
 every reader module, so the registry is complete whenever this module is used.
 """
 
@@ -10,8 +10,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.base import Sequence
-from lrslam.frontend.datasets.options import ReaderOptions
+from lrslam.datasets.base import Sequence
+from lrslam.datasets.options import ReaderOptions
 
 __all__ = ["READERS", "register", "detect_layout", "open_sequence"]
 

@@ -1,4 +1,4 @@
-"""Ray-cast RGB-D rendering of a synthetic :class:`~lrslam.frontend.synthetic.scene.Scene` (Open3D Embree).
+"""Ray-cast RGB-D rendering of a synthetic :class:`~lrslam.datasets.synth.scene.Scene` (Open3D Embree).
 
 Rays are built here from :func:`lrslam.camera.pixel_directions` -- pixel (u, v) looks along
 ``((u - cx) / fx, (v - cy) / fy, 1)``, exactly the back-projection convention -- instead of

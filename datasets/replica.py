@@ -27,9 +27,9 @@ import numpy as np
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
-from lrslam.frontend.datasets.base import Sequence, SourceIndex
-from lrslam.frontend.datasets.parsing import as_pose_or_nan, numbered_files, read_numbers
-from lrslam.frontend.datasets.registry import register
+from lrslam.datasets.base import Sequence, SourceIndex
+from lrslam.datasets.parsing import as_pose_or_nan, numbered_files, read_numbers
+from lrslam.datasets.registry import register
 
 __all__ = ["ReplicaReader", "REPLICA_INTRINSICS", "REPLICA_SIZE", "REPLICA_DEPTH_SCALE", "NOMINAL_FPS"]
 
