@@ -12,6 +12,8 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict
 
+from lrslam.errors import InputError
+
 __all__ = ["StrictModel", "load_yaml", "save_yaml", "deep_update"]
 
 M = TypeVar("M", bound=BaseModel)
@@ -23,21 +25,28 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Load a YAML mapping (empty file -> {}); errors name the file."""
+def load_yaml(path: str | Path, label: str | None = None) -> dict[str, Any]:
+    """A YAML mapping from a file (an empty file gives ``{}``). InputError, one line starting with ``label``
+    (default: the path), when the file is missing, a folder, unreadable, not UTF-8, not valid YAML or not a
+    mapping."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: config file not found")
+    where = label or str(path)
+    if not path.exists():
+        raise InputError(f"{where}: config file not found")
+    if path.is_dir():
+        raise InputError(f"{where}: is a folder, not a YAML file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a text (UTF-8) file") from None
+        raise InputError(f"{where}: not a text (UTF-8) file") from None
     except OSError as e:
-        raise ValueError(f"{path}: cannot read: {e.strerror or e}") from None
+        raise InputError(f"{where}: cannot read: {e.strerror or e}") from None
     except yaml.YAMLError as e:
-        raise ValueError(f"{path}: invalid YAML: {' '.join(str(e).split())}") from None
+        raise InputError(f"{where}: invalid YAML: {' '.join(str(e).split())}") from None
+    if data is None:
+        return {}
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: top level must be a mapping")
+        raise InputError(f"{where}: the top level must be a mapping (key: value), got a {type(data).__name__}")
     return data
 
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from lrslam.errors import InputError
 
 __all__ = ["Frame"]
 
@@ -41,3 +44,10 @@ class Frame:
     def valid_depth_fraction(self) -> float:
         """Fraction of pixels with a positive depth."""
         return float(np.count_nonzero(self.depth > 0)) / self.depth.size
+
+    def require_depth(self, source: str | Path | None = None) -> None:
+        """The first frame of a map needs depth: InputError naming ``source`` (e.g. its depth file; default
+        ``frame <index>``) when no pixel has any."""
+        if self.valid_depth_fraction() == 0:
+            raise InputError(f"{source or f'frame {self.index}'}: the first frame has no valid depth (all zero); "
+                             "cannot initialise the map")

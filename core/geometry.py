@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
-    "make_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
+    "make_pose", "constant_velocity", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
     "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
     "propagate_covariance", "orthonormalise",
 ]
@@ -37,6 +37,11 @@ def inv(T: np.ndarray) -> np.ndarray:
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
     out[..., 3, 3] = 1.0
     return out
+
+
+def constant_velocity(T_w_prev: np.ndarray, T_w_last: np.ndarray) -> np.ndarray:
+    """The last motion repeated on SE(3): the next ``T_w_c`` is ``T_w_last inv(T_w_prev) T_w_last`` (4, 4)."""
+    return T_w_last @ inv(T_w_prev) @ T_w_last
 
 
 def relative(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:

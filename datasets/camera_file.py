@@ -20,7 +20,7 @@ from pathlib import Path
 from pydantic import ConfigDict, PositiveFloat, ValidationError, field_validator
 
 from lrslam.config import StrictModel, load_yaml
-from lrslam.errors import DatasetError
+from lrslam.errors import DatasetError, InputError
 
 __all__ = ["CameraFile", "read_camera_file", "CAMERA_FILE"]
 
@@ -50,7 +50,7 @@ def read_camera_file(path: Path) -> CameraFile:
     """Parse an ``intrinsics.yaml`` (see the module docstring); DatasetError naming the file and the key."""
     try:
         data = load_yaml(path)
-    except (ValueError, FileNotFoundError) as e:
+    except InputError as e:  # load_yaml's messages name the file
         raise DatasetError(str(e)) from None
     try:
         return CameraFile.model_validate(data)

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, PositiveFloat, PositiveInt, Validati
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.config import load_yaml
-from lrslam.errors import DatasetError
+from lrslam.errors import DatasetError, InputError
 from lrslam.datasets.base import SourceIndex
 from lrslam.datasets.registry import register
 from lrslam.datasets.tum import TumReader
@@ -62,7 +62,7 @@ def load_scene_info(path: Path) -> SceneInfo:
     """Parse ``scene.yaml``; DatasetError naming the file and the first problem."""
     try:
         data = load_yaml(path)
-    except (ValueError, FileNotFoundError) as e:  # load_yaml's messages name the file
+    except InputError as e:  # load_yaml's messages name the file
         raise DatasetError(str(e)) from None
     try:
         return SceneInfo.model_validate(data)

@@ -35,7 +35,7 @@ from lrslam.errors import InputError
 from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates, fallback_information,
                                           frame_problem, register_rgbd)
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
-from lrslam.geometry import inv, is_valid_pose, pose_error
+from lrslam.geometry import constant_velocity, inv, is_valid_pose, pose_error
 
 __all__ = ["OdometryConfig", "OdometryResult", "Odometry"]
 
@@ -139,7 +139,7 @@ class Odometry:
 
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next frame's ``T_w_c``."""
-        return self._T_w_last @ inv(self._T_w_prev) @ self._T_w_last
+        return constant_velocity(self._T_w_prev, self._T_w_last)
 
     def use_last_as_reference(self) -> bool:
         """Make the last tracked frame the reference (e.g. when the keyframe policy picks it in

@@ -18,16 +18,17 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, Field, model_validator
 
-from lrslam.config import StrictModel, deep_update
+from lrslam.config import StrictModel, deep_update, load_yaml
 from lrslam.errors import InputError
 
 from lrslam.backend.graph import GraphConfig
+from lrslam.backend.loop_closure import LoopClosureConfig
+from lrslam.backend.policy import BackendConfig
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.frontend.keyframes import KeyframeConfig
-from lrslam.backend.loop_closure import LoopClosureConfig
 from lrslam.frontend.odometry import OdometryConfig
 
-__all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig", "BackendConfig",
+__all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig",
            "MODE_PRESETS", "RECORD_KEYS", "build_config", "list_presets", "read_user_yaml",
            "is_config_file"]
 
@@ -40,12 +41,11 @@ class DatasetSection(StrictModel):
 
 
 class ScheduleConfig(StrictModel):
-    """When mapping and keyframing happen (ESLAM: map every 4 frames, a keyframe every 4-5), how the
-    constant-velocity seeder extrapolates, and when the field arbitrates between the odometry's seed and the
+    """When mapping happens (ESLAM: every 4 frames and at every keyframe; keyframes: ``keyframes.every_n``), how
+    the constant-velocity seeder extrapolates, and when the field arbitrates between the odometry's seed and the
     constant-velocity guess."""
 
     map_every: int = Field(4, gt=0, description="map every N frames (and at every keyframe)")
-    keyframe_every: int = Field(4, gt=0, description="keyframer every_n: every N-th frame is a keyframe")
     velocity_model: Literal["linear", "se3"] = Field(
         "linear", description="constant-velocity seeder: ESLAM's linear extrapolation of (t, q), or the last "
         "relative motion repeated on SE(3)")
@@ -73,43 +73,15 @@ class PartsConfig(StrictModel):
     """The parts the runner is built from (:func:`lrslam.pipeline.parts.build_runner`); the modes are presets.
 
     seeder: ``constant_velocity`` (ESLAM) or ``odometry`` (the frontend). refiner: ``field`` (LRSLAM tracking,
-    which also builds the field and its mapper) or ``none``. keyframer: ``every_n`` (ESLAM) or ``policy``
-    (motion / overlap). backend: ``graph`` (GTSAM pose graph + loop closure) or ``none``."""
+    which also builds the field and its mapper) or ``none``. keyframer: ``every_n`` (ESLAM: every
+    ``keyframes.every_n``-th frame) or ``policy`` (motion / overlap, a keyframe at least every
+    ``keyframes.every_n`` frames). backend: ``graph`` (GTSAM pose graph + loop closure) or ``none``.
+    Combinations that cannot work are rejected when the config is built (:meth:`RunConfig._check_parts`)."""
 
     seeder: Literal["constant_velocity", "odometry"] = "odometry"
     refiner: Literal["field", "none"] = "field"
     keyframer: Literal["every_n", "policy"] = "policy"
     backend: Literal["graph", "none"] = "graph"
-
-
-class BackendConfig(StrictModel):
-    """How the pose graph is fed and when its result is written back and re-mapped for.
-
-    factors: which measurements enter the graph: ``odometry`` (the frontend's own keyframe-to-keyframe
-    estimate, :mod:`lrslam.backend.keyframe_link`), ``field`` (the relative pose of consecutive keyframes in
-    the current trajectory, with the field tracker's information; re-stated from the current poses before every
-    solve, so the graph never pulls the mapper's refinements back), ``loop`` (verified loop closures).
-    optimise: ``on_loop`` solves when a loop with a real correction arrives (above ``loop_min_correction_*``;
-    consistent re-observations only add their factor), ``every_keyframe`` at every keyframe.
-    write_min_shift_*: a keyframe is overwritten only where the graph moved it more than this.
-    remap_min_shift_m / remap_keyframes: a solve that moved some keyframe more than this re-maps the field over
-    (at most) that many most-moved keyframes (``field.mapping.remap_iters`` iterations).
-    loop_field_check: with a field, a loop that would correct the trajectory is kept only when the map agrees:
-    the new keyframe's tracking loss at the pose the loop implies (``T_w_i T_i_j``) is at most
-    ``(1 + loop_field_tolerance)`` times its loss at the current pose, on the same rays; otherwise the loop is
-    dropped (logged and counted): the frontend's registration of two views is less precise than tracking
-    against the whole map, and a loop the map disputes would pull an accurate trajectory toward its error."""
-
-    factors: list[Literal["odometry", "field", "loop"]] = ["odometry", "field", "loop"]
-    optimise: Literal["on_loop", "every_keyframe"] = "on_loop"
-    loop_min_correction_m: float = Field(0.01, ge=0)
-    loop_min_correction_deg: float = Field(1.0, ge=0)
-    write_min_shift_m: float = Field(1e-4, ge=0)
-    write_min_shift_deg: float = Field(0.01, ge=0)
-    remap_min_shift_m: float = Field(0.005, ge=0)
-    remap_keyframes: int = Field(20, gt=0)
-    loop_field_check: bool = True
-    loop_field_tolerance: float = Field(0.0, ge=0)
 
 
 class OutputConfig(StrictModel):
@@ -174,6 +146,22 @@ class RunConfig(StrictModel):
             return {**data, "field": {**(field or {}), "seed": seed}}
         return data
 
+    @model_validator(mode="after")
+    def _check_parts(self) -> "RunConfig":
+        """Part / option combinations that cannot work, rejected here (one line naming both keys) instead of
+        failing, or silently doing nothing, in the middle of a run."""
+        p, factors = self.parts, self.backend.factors
+        if p.backend == "graph" and self.graph.optimiser == "isam2":
+            raise ValueError("graph.optimiser=isam2 does not work with parts.backend=graph (the backend re-states "
+                             "its field factors before every solve): use graph.optimiser=lm or gnc")
+        if p.backend == "graph" and p.seeder == "constant_velocity" and "odometry" in factors:
+            raise ValueError("backend.factors has 'odometry' but parts.seeder=constant_velocity runs no frontend "
+                             "odometry: use parts.seeder=odometry or drop the factor")
+        if p.backend == "graph" and p.refiner == "none" and "field" in factors:
+            raise ValueError("backend.factors has 'field' but parts.refiner=none builds no field: use "
+                             "parts.refiner=field or drop the factor")
+        return self
+
     def reader_options(self):
         from lrslam.datasets import ReaderOptions
 
@@ -189,7 +177,8 @@ class RunConfig(StrictModel):
 # The modes are presets of the runner factory: which parts, and the settings that belong to them.
 MODE_PRESETS: dict[str, dict[str, Any]] = {
     "field": {"parts": {"seeder": "constant_velocity", "refiner": "field", "keyframer": "every_n",
-                        "backend": "none"}},
+                        "backend": "none"},
+              "keyframes": {"every_n": 4}},   # ESLAM: every 4th frame
     "frontend": {"parts": {"seeder": "odometry", "refiner": "none", "keyframer": "policy", "backend": "none"}},
     "fused": {"parts": {"seeder": "odometry", "refiner": "field", "keyframer": "policy", "backend": "graph"},
               # the odometry seed is a measurement, not a guess: keep the field's refinement only where it is better
@@ -214,28 +203,9 @@ RECORD_KEYS = ("provenance", "sequence")
 
 def read_user_yaml(path: str | Path, flag: str = "--config") -> dict[str, Any]:
     """A YAML mapping from a user's file, its record sections (:data:`RECORD_KEYS`) dropped; InputError naming
-    the file when it is missing, a folder, unreadable, not UTF-8, not valid YAML or not a mapping. An empty
-    file gives ``{}``."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{flag} {path}: config file not found")
-    if path.is_dir():
-        raise InputError(f"{flag} {path}: is a folder, not a YAML file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{flag} {path}: not a text (UTF-8) file") from None
-    except OSError as e:
-        raise InputError(f"{flag} {path}: cannot read: {e.strerror or e}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise InputError(f"{flag} {path}: invalid YAML: {' '.join(str(e).split())}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise InputError(f"{flag} {path}: the top level must be a mapping (key: value), got a "
-                         f"{type(data).__name__}")
+    the flag and the file when it is missing, a folder, unreadable, not UTF-8, not valid YAML or not a mapping
+    (:func:`lrslam.config.load_yaml`). An empty file gives ``{}``."""
+    data = load_yaml(path, f"{flag} {path}")
     return {k: v for k, v in data.items() if k not in RECORD_KEYS}
 
 
@@ -244,14 +214,24 @@ def is_config_file(name: str) -> bool:
     return Path(name).suffix in (".yaml", ".yml") or "/" in name or Path(name).exists()
 
 
-def _load_preset(kind: str, name: str) -> dict[str, Any]:
+def _load_preset(kind: str, name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A preset's settings; a dataset preset's ``base: <preset>`` is loaded first and the preset's own keys merged
+    over it (a scene preset states only what differs from its base, as ESLAM's ``inherit_from``)."""
     if kind == "dataset" and is_config_file(name):
-        return read_user_yaml(name)
-    f = _preset_dir(kind) / f"{name}.yaml"
-    if not f.is_file():
-        raise InputError(f"unknown {kind} preset {name!r}; known: {', '.join(list_presets(kind))} "
-                         f"(or give a path to a .yaml file)")
-    return yaml.safe_load(f.read_text()) or {}
+        data = read_user_yaml(name)
+    else:
+        f = _preset_dir(kind) / f"{name}.yaml"
+        if not f.is_file():
+            raise InputError(f"unknown {kind} preset {name!r}; known: {', '.join(list_presets(kind))} "
+                             f"(or give a path to a .yaml file)")
+        data = yaml.safe_load(f.read_text()) or {}
+    base = data.pop("base", None) if kind == "dataset" else None
+    if base is None:
+        return data
+    if not isinstance(base, str) or base in _seen + (name,):
+        raise InputError(f"dataset preset {name!r}: base must name another preset, got {base!r}"
+                         + (" (a cycle)" if isinstance(base, str) else ""))
+    return deep_update(_load_preset(kind, base, _seen + (name,)), data)
 
 
 def _parse_override(item: str) -> dict[str, Any]:
@@ -309,4 +289,6 @@ def build_config(preset: str | None = None, representation: str | None = None, c
 def _describe(e, section: str) -> str:
     first = e.errors()[0]
     loc = ".".join([section] * bool(section) + [str(x) for x in first["loc"]])
+    if not loc and first["type"] == "value_error":   # a whole-config check: its message names the keys
+        return f"invalid config: {first['msg'].removeprefix('Value error, ')}"
     return f"invalid config at {loc or '<root>'}: {first['msg']} ({e.error_count()} error(s))"

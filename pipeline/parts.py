@@ -1,79 +1,49 @@
-"""The parts a SLAM run is built from, and the factory that builds the runner from config.
+"""The parts a SLAM run is built from, and the factory that builds them from config.
 
 - seeder: where a frame's pose starts -- :class:`ConstantVelocitySeeder` (ESLAM) or :class:`OdometrySeeder`
   (the frontend's frame-to-frame motion applied to the last pose);
-- refiner: :class:`FieldRefiner` (LRSLAM tracking by rendering loss) or :class:`NoRefiner`;
+- refiner: :class:`FieldRefiner` (LRSLAM tracking by rendering loss) or none;
 - keyframer: :class:`EveryNKeyframer` (ESLAM) or :class:`PolicyKeyframer` (motion / overlap);
-- mapper: :class:`FieldMapper` (joint field + window-pose optimisation, re-maps), present with the field;
-- backend: :class:`GraphBackend` (GTSAM pose graph with frontend, field and loop factors) or none.
+- mapper: :class:`FieldMapper` (the field's owner: joint field + window-pose optimisation, re-maps), with the field;
+- backend: :class:`lrslam.backend.policy.GraphBackend` (pose graph with frontend, field and loop factors) or none.
 
-``field``, ``frontend`` and ``fused`` are presets of this factory (:data:`lrslam.pipeline.config.MODE_PRESETS`).
-Parts keep no pose copies: they receive the poses they need from the runner's :class:`Trajectory`.
+Each part implements its protocol in :mod:`lrslam.pipeline.contracts`. ``field``, ``frontend`` and ``fused`` are
+presets of this factory (:data:`lrslam.pipeline.config.MODE_PRESETS`). Parts keep no pose copies: they receive
+the poses they need from the runner's :class:`Trajectory`.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field as dc_field
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lrslam.frame import Frame
-from lrslam.geometry import diagonal_information, inv, pose_error, pose_from_tum, pose_to_tum
-from lrslam.pipeline.config import BackendConfig, RunConfig
+from lrslam.geometry import constant_velocity, diagonal_information, pose_error, pose_from_tum, pose_to_tum
+from lrslam.pipeline.config import RunConfig
+from lrslam.pipeline.contracts import Backend, Keyframer, Mapper, Refinement, Refiner, Seed, Seeder
 from lrslam.pipeline.trajectory import Trajectory
 
-__all__ = ["Seed", "Refinement", "Correction", "ConstantVelocitySeeder", "OdometrySeeder", "FieldRefiner",
-           "NoRefiner", "EveryNKeyframer", "PolicyKeyframer", "FieldMapper", "GraphBackend", "build_parts"]
+if TYPE_CHECKING:  # annotations only: torch, GTSAM and Open3D load when a part that needs them is built
+    from lrslam.backend.policy import GraphBackend
+    from lrslam.field.slam import FieldSLAM
+    from lrslam.frontend.keyframes import KeyframePolicy
+    from lrslam.frontend.odometry import Odometry
+
+__all__ = ["ConstantVelocitySeeder", "OdometrySeeder", "FieldRefiner", "EveryNKeyframer", "PolicyKeyframer",
+           "FieldMapper", "Parts", "build_parts"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Seed:
-    """A frame's starting pose ``T_w_c`` (4, 4); ``ok`` False when the seeder fell back to a guess;
-    ``odometry``: the frontend's result for the frame (None without one); ``alternatives``: other starting
-    poses (4, 4) worth comparing with ``T_w_c`` by the field (a refiner picks the one it fits best)."""
-
-    T_w_c: np.ndarray
-    ok: bool = True
-    odometry: object | None = None
-    note: str = ""
-    alternatives: tuple[np.ndarray, ...] = ()
-
-
-@dataclass(frozen=True)
-class Refinement:
-    """The refined pose ``T_w_c`` (4, 4) (the starting pose when not ``ok`` or not ``accepted``);
-    ``information`` (6, 6) of it given the field (None without one); ``ok`` None when there is no refiner;
-    ``iters`` tracking iterations run; ``start``: which candidate the refinement started from (0 = the seed's
-    ``T_w_c``, k = its ``alternatives[k - 1]``)."""
-
-    T_w_c: np.ndarray
-    ok: bool | None = None
-    accepted: bool = False
-    information: np.ndarray | None = None
-    note: str = ""
-    iters: int = 0
-    start: int = 0
-
-
-@dataclass(frozen=True)
-class Correction:
-    """What the backend did at a keyframe: ``poses`` its solution (``{kf: T_w_c}``, empty when it did not
-    solve), ``loops`` verified loop closures added, ``solved``."""
-
-    poses: dict = dc_field(default_factory=dict)
-    loops: int = 0
-    solved: bool = False
 
 
 def _constant_velocity(traj: Trajectory) -> np.ndarray:
     """The last motion repeated on SE(3): ``T_{i-1} inv(T_{i-2}) T_{i-1}``."""
     if len(traj) < 2:
         return traj.pose(-1)
-    T_prev, T_prev2 = traj.pose(-1), traj.pose(-2)
-    return T_prev @ inv(T_prev2) @ T_prev
+    return constant_velocity(traj.pose(-2), traj.pose(-1))
 
 
 def _linear_velocity(traj: Trajectory) -> np.ndarray:
@@ -111,6 +81,10 @@ class ConstantVelocitySeeder(_Stateless):
     def seed(self, frame: Frame, traj: Trajectory) -> Seed:
         return Seed(self.guess(traj))
 
+    def frontend_pose(self) -> None:
+        """No frontend."""
+        return None
+
 
 class OdometrySeeder:
     """The frontend's frame-to-frame motion (:class:`lrslam.frontend.odometry.Odometry`, its own estimate)
@@ -120,7 +94,7 @@ class OdometrySeeder:
     guess differ by more than either, the guess goes along as an alternative for the refiner to judge (a
     registration that passed its gates can still be wrong by centimetres at large motion)."""
 
-    def __init__(self, odometry, disagreement: tuple[float, float] | None = None) -> None:
+    def __init__(self, odometry: Odometry, disagreement: tuple[float, float] | None = None) -> None:
         self.odometry = odometry
         self.disagreement = disagreement
 
@@ -152,17 +126,12 @@ class OdometrySeeder:
 
 
 # -------------------------------------------------------------------------------------------------- refiners
-class NoRefiner:
-    def refine(self, frame: Frame, seed: Seed) -> Refinement:
-        return Refinement(seed.T_w_c)
-
-
 class FieldRefiner:
     """LRSLAM tracking against the frozen field from the seed (``field.tracking.accept_if_better`` keeps the
     seed unless the refinement lowers the loss on the same rays)."""
 
-    def __init__(self, field) -> None:
-        self.field = field
+    def __init__(self, field: FieldSLAM) -> None:
+        self.field = field   # owned by the FieldMapper; the refiner only tracks against it
 
     def refine(self, frame: Frame, seed: Seed) -> Refinement:
         start, note = self._start(frame, seed)
@@ -208,7 +177,7 @@ class PolicyKeyframer:
     """Motion / overlap policy (:class:`lrslam.frontend.keyframes.KeyframePolicy`), given the last keyframe's
     current pose from the trajectory."""
 
-    def __init__(self, policy) -> None:
+    def __init__(self, policy: KeyframePolicy) -> None:
         self.policy = policy
 
     def start(self, frame: Frame) -> None:
@@ -229,18 +198,37 @@ class PolicyKeyframer:
 
 # -------------------------------------------------------------------------------------------------- mapper
 class FieldMapper:
-    """Field mapping on keyframes and every ``map_every`` frames; re-maps after corrections; the mesh.
+    """The field's owner: builds it from the first frame, maps keyframes and every ``map_every`` frames, re-maps
+    after corrections, meshes it, and holds its state for checkpoints.
 
     ``background``: each round runs in a worker thread beside the tracking of the next frames
     (:meth:`lrslam.field.slam.FieldSLAM.map_in_background`); :meth:`map` then returns the previous round's poses
     and :meth:`collect` the current one's."""
 
-    def __init__(self, field, map_every: int, background: bool = False,
+    def __init__(self, field: FieldSLAM, map_every: int, background: bool = False,
                  wait_motion: tuple[float, float] = (np.inf, np.inf)) -> None:
         self.field = field
         self.map_every = map_every
         self.background = background
         self.wait_motion = wait_motion
+
+    @property
+    def reverted_poses(self) -> int:
+        """Mapping poses reverted to their starting value (the round made them worse)."""
+        return self.field.reverted_poses
+
+    @property
+    def device(self) -> str:
+        return str(self.field.device)
+
+    def parameter_count(self) -> dict[str, int]:
+        return self.field.parameter_count()
+
+    def state_dict(self) -> dict:
+        return self.field.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.field.load_state_dict(state)
 
     def must_wait(self, traj: Trajectory) -> bool:
         """Background only: the last frame-to-frame motion exceeded ``wait_motion`` (metres, degrees), so the next
@@ -250,7 +238,7 @@ class FieldMapper:
         d_t, d_r = traj.last_motion()
         return d_t > self.wait_motion[0] or d_r > self.wait_motion[1]
 
-    def start(self, frame: Frame, T_w_c0: np.ndarray, progress=None) -> None:
+    def start(self, frame: Frame, T_w_c0: np.ndarray, progress: Callable[[int, int], None] | None = None) -> None:
         self.field.initialise(frame.index, frame.rgb, frame.depth, T_w_c0, progress)
         if self.background:
             self.field.start_background_mapping()
@@ -275,161 +263,69 @@ class FieldMapper:
         if self.background:
             self.field.stop_background_mapping()
 
-    def remap(self, keyframe_poses: dict, ids: list[int]) -> dict:
-        return self.field.remap(keyframe_poses, ids)
+    def remap(self, keyframe_poses: dict, ids: list[int]) -> None:
+        self.field.remap(keyframe_poses, ids)
 
     def mesh(self, keyframe_poses: dict, resolution: float | None):
         return self.field.extract_mesh(keyframe_poses, resolution)
 
 
-# -------------------------------------------------------------------------------------------------- backend
-class GraphBackend:
-    """Keyframe pose graph (see :class:`lrslam.pipeline.config.BackendConfig` for the factor sets and the
-    solve / write-back rules). Keeps factors, the loop closer's keyframe images and the frontend's chain since
-    the last keyframe; every pose comes from the trajectory."""
-
-    def __init__(self, cfg: BackendConfig, graph, loop_closer, link, field_default_information: np.ndarray,
-                 pose_losses=None):
-        self.cfg = cfg
-        self.graph, self.loop_closer, self.link = graph, loop_closer, link
-        self._default_info = field_default_information
-        self._pose_losses = pose_losses if cfg.loop_field_check else None   # (rgb, depth, [T_w_c]) -> losses
-        self._last: int | None = None
-        self.n_loops = self.n_solves = self.n_loops_disputed = 0
-
-    def state_dict(self) -> dict:
-        """Factors (plain numpy, :meth:`PoseGraph.state`), the loop closer's keyframes, the frontend's chain since
-        the last keyframe and the counters, for checkpoints. With ``graph.optimiser: isam2`` GTSAM's own
-        linearisation point is not saved: a restored graph re-adds every factor at the next solve."""
-        return {"graph": self.graph.state(), "loop_closer": self.loop_closer.state_dict(),
-                "link": self.link.state_dict(), "last": self._last, "n_loops": self.n_loops,
-                "n_solves": self.n_solves, "n_loops_disputed": self.n_loops_disputed}
-
-    def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict` output."""
-        self.graph = type(self.graph).from_state(self.graph.cfg, state["graph"])
-        self.loop_closer.load_state_dict(state["loop_closer"])
-        self.link.load_state_dict(state["link"])
-        self._last = state["last"]
-        self.n_loops, self.n_solves = int(state["n_loops"]), int(state["n_solves"])
-        self.n_loops_disputed = int(state["n_loops_disputed"])
-
-    def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
-        self.graph.add_keyframe(frame.index, T_w_c0)
-        self.loop_closer.add_keyframe(frame.index, frame)
-        self.link.start(frame.index, frame)
-        self._last = frame.index
-
-    def on_frame(self, seed: Seed) -> None:
-        """Chain the frontend's increment of every frame (the odometry factor's fallback)."""
-        if seed.odometry is not None:
-            self.link.accumulate(seed.odometry)
-
-    def on_keyframe(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> Correction:
-        """Add keyframe ``frame.index`` (its pose in ``poses``, every keyframe's current ``T_w_c``) with its
-        factors; solve when a loop brings a real correction (or at every keyframe); return the solution."""
-        i, j, factors = self._last, frame.index, self.cfg.factors
-        self.graph.add_keyframe(j)
-        # 1. Field factor: the trajectory's relative pose, with the tracker's information.
-        if "field" in factors:
-            info = information if information is not None else self._default_info
-            self.graph.add_field_relative(i, j, inv(poses[i]) @ poses[j], info)
-        # 2. Frontend factor: its own keyframe-to-keyframe estimate.
-        link = self.link.measure(j, frame)
-        if "odometry" in factors and link is not None:
-            self.graph.add_odometry(link.i, link.j, link.T_i_j, link.information)
-        # 3. Loops against earlier keyframes.
-        loops = []
-        if "loop" in factors:
-            loops = self._agreed_by_field(self.loop_closer.detect(j, frame, poses), frame, poses)
-            for lc in loops:
-                self.graph.add_loop(lc.i, lc.j, lc.T_i_j, lc.information)
-        self.loop_closer.add_keyframe(j, frame)
-        self._last = j
-        self.n_loops += len(loops)
-        real = [lc for lc in loops if self._is_correction(lc)]
-        if len(loops) > len(real):
-            log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", j,
-                     len(loops) - len(real))
-        if not (real or self.cfg.optimise == "every_keyframe"):
-            return Correction({}, len(loops), False)
-        # 4. Solve from the trajectory's poses, field factors re-stated from them (the graph never reverts the
-        #    mapper's refinements: only loops and the frontend's measurements move poses).
-        for a, b in zip(list(poses)[:-1], list(poses)[1:]):
-            self.graph.set_measurement("field", a, b, inv(poses[a]) @ poses[b])
-        self.n_solves += 1
-        return Correction(self.graph.optimise(poses), len(loops), True)
-
-    def _is_correction(self, lc) -> bool:
-        return lc.correction_m > self.cfg.loop_min_correction_m or lc.correction_deg > self.cfg.loop_min_correction_deg
-
-    def _agreed_by_field(self, loops: list, frame: Frame, poses: dict[int, np.ndarray]) -> list:
-        """The loops the map does not dispute (see ``BackendConfig.loop_field_check``): consistent
-        re-observations always; corrections only where the new keyframe fits the field at the loop's pose at
-        least as well as at its current one."""
-        if self._pose_losses is None or not any(self._is_correction(lc) for lc in loops):
-            return loops
-        j = frame.index
-        corrections = [lc for lc in loops if self._is_correction(lc)]
-        losses = self._pose_losses(frame.rgb, frame.depth, [poses[j]] + [poses[lc.i] @ lc.T_i_j for lc in corrections])
-        kept = [lc for lc in loops if not self._is_correction(lc)]
-        for lc, loss in zip(corrections, losses[1:]):
-            if np.isfinite(loss) and np.isfinite(losses[0]) and loss > losses[0] * (1.0 + self.cfg.loop_field_tolerance):
-                self.n_loops_disputed += 1
-                log.info("loop %d-%d dropped: the map disputes its correction (%.3f m, %.2f deg; loss %.4g vs %.4g "
-                         "at the current pose)", lc.i, j, lc.correction_m, lc.correction_deg, loss, losses[0])
-            else:
-                kept.append(lc)
-        return kept
-
-
 # -------------------------------------------------------------------------------------------------- factory
 @dataclass
 class Parts:
-    seeder: object
-    refiner: object
-    keyframer: object
-    mapper: FieldMapper | None
-    backend: GraphBackend | None
-    field: object | None
+    """The parts of one run; ``refiner``, ``mapper`` and ``backend`` are None when the run has none (a refiner
+    and a mapper come together: both work on the one field, which the mapper owns)."""
+
+    seeder: Seeder
+    keyframer: Keyframer
+    refiner: Refiner | None = None
+    mapper: Mapper | None = None
+    backend: Backend | None = None
 
 
 def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray) -> Parts:
-    """Build the configured parts (``cfg.parts``); each gets its own config section only."""
-    p = cfg.parts
+    """Build the configured parts (``cfg.parts``); each gets its own config section only. The combinations
+    were checked when ``cfg`` was built (:func:`lrslam.pipeline.config.check_parts`)."""
+    p, sc = cfg.parts, cfg.schedule
     field = None
     if p.refiner == "field":
         from lrslam.field.slam import FieldSLAM
 
         field = FieldSLAM(cfg.field, np.asarray(bound, dtype=np.float64), K, height, width)
-    if p.seeder == "odometry":
-        from lrslam.frontend.odometry import Odometry
+    return Parts(_seeder(cfg, K, height, width, field is not None), _keyframer(cfg),
+                 FieldRefiner(field) if field is not None else None,
+                 None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
+                                                        (sc.background_wait_m, sc.background_wait_deg)),
+                 _backend(cfg, field) if p.backend == "graph" else None)
 
-        sc = cfg.schedule
-        arbitrate = field is not None and sc.seed_arbitration
-        seeder = OdometrySeeder(Odometry(cfg.odometry, K, height, width),
-                                (sc.seed_disagreement_m, sc.seed_disagreement_deg) if arbitrate else None)
-    else:
-        seeder = ConstantVelocitySeeder(cfg.schedule.velocity_model)
-    refiner = FieldRefiner(field) if field is not None else NoRefiner()
-    if p.keyframer == "policy":
+
+def _seeder(cfg: RunConfig, K: np.ndarray, height: int, width: int, with_field: bool) -> Seeder:
+    sc = cfg.schedule
+    if cfg.parts.seeder == "constant_velocity":
+        return ConstantVelocitySeeder(sc.velocity_model)
+    from lrslam.frontend.odometry import Odometry
+
+    arbitrate = with_field and sc.seed_arbitration
+    return OdometrySeeder(Odometry(cfg.odometry, K, height, width),
+                          (sc.seed_disagreement_m, sc.seed_disagreement_deg) if arbitrate else None)
+
+
+def _keyframer(cfg: RunConfig) -> Keyframer:
+    if cfg.parts.keyframer == "policy":
         from lrslam.frontend.keyframes import KeyframePolicy
 
-        keyframer = PolicyKeyframer(KeyframePolicy(cfg.keyframes))
-    else:
-        keyframer = EveryNKeyframer(cfg.schedule.keyframe_every)
-    sc = cfg.schedule
-    mapper = None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
-                                                    (sc.background_wait_m, sc.background_wait_deg))
-    backend = None
-    if p.backend == "graph":
-        from lrslam.backend.graph import PoseGraph
-        from lrslam.backend.keyframe_link import KeyframeLink
-        from lrslam.backend.loop_closure import LoopCloser
+        return PolicyKeyframer(KeyframePolicy(cfg.keyframes))
+    return EveryNKeyframer(cfg.keyframes.every_n)
 
-        g = cfg.graph
-        backend = GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),
-                               KeyframeLink(cfg.odometry.registration, cfg.odometry.gates),
-                               diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation),
-                               field.pose_losses if field is not None else None)
-    return Parts(seeder, refiner, keyframer, mapper, backend, field)
+
+def _backend(cfg: RunConfig, field: FieldSLAM | None) -> GraphBackend:
+    from lrslam.backend.graph import PoseGraph
+    from lrslam.backend.keyframe_link import KeyframeLink
+    from lrslam.backend.loop_closure import LoopCloser
+    from lrslam.backend.policy import GraphBackend
+
+    g = cfg.graph
+    return GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),
+                        KeyframeLink(cfg.odometry.registration, cfg.odometry.gates),
+                        diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation),
+                        field.pose_losses if field is not None else None)

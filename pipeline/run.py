@@ -84,12 +84,6 @@ def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray) -> tuple[np.ndarray
     return b, src
 
 
-def _check_first_frame(seq, first) -> None:
-    if first.valid_depth_fraction() == 0:
-        raise InputError(f"{seq.depth_path(0)}: the first frame has no valid depth (all zero); cannot initialise "
-                         "the map")
-
-
 def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
     """config.yaml: the resolved settings (the reader actually used) + ``provenance``."""
     rec = cfg.resolved()
@@ -131,7 +125,7 @@ def _start(runner: SlamRunner, first, T0: np.ndarray, cfg: RunConfig, progress: 
         runner.start(first, T0, lambda done, total: bar.update(done - bar.n))
 
 
-def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, mode: str,
+def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, has_field: bool,
             coverage: BoundCoverage | None) -> dict:
     """Add ground-truth presence, bound coverage and the sanity status to the metrics; write ``metrics.json``
     (strict JSON: non-finite values become null + ``<key>_reason``). Returns the written metrics."""
@@ -139,7 +133,7 @@ def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndar
     metrics["has_ground_truth"] = bool(gt is not None and np.isfinite(gt).all(axis=(1, 2)).any())
     if coverage is not None:
         metrics.update(coverage.metrics())
-    metrics["status"], reasons = run_status(metrics, poses, bound, mode)
+    metrics["status"], reasons = run_status(metrics, poses, bound, has_field)
     if reasons:
         metrics["degraded_reasons"] = reasons
         log.warning("run degraded: %s", "; ".join(reasons))
@@ -185,7 +179,7 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
     t_start = time.perf_counter()
     runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
     _start(runner, first, T0, cfg, progress)
-    coverage = BoundCoverage(bound) if cfg.mode in ("field", "fused") else None
+    coverage = BoundCoverage(bound) if cfg.parts.refiner == "field" else None
     return _Progress(runner, bound, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
 
 
@@ -270,7 +264,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
             else:
                 save_yaml(out_dir / "config.yaml", record)
             first = seq[0]
-            _check_first_frame(seq, first)
+            first.require_depth(seq.depth_path(0))
             timer = StageTimer()
             if saved is not None:
                 run = _resumed_run(cfg, first, timer, saved)
@@ -293,7 +287,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
             metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
             if run.resumed_at:
                 metrics["resumed_at_frames"] = run.resumed_at
-            metrics = _finish(out_dir, metrics, seq, poses, run.bound, cfg.mode, run.coverage)
+            metrics = _finish(out_dir, metrics, seq, poses, run.bound, cfg.parts.refiner == "field", run.coverage)
             partial.remove()
             checkpoints.remove()
             return RunResult(out_dir, metrics, timestamps, poses)

@@ -22,10 +22,11 @@ from dataclasses import asdict, dataclass, field as dc_field
 
 import numpy as np
 
-from lrslam.frame import Frame
 from lrslam.errors import InputError
+from lrslam.frame import Frame
 from lrslam.pipeline.config import RunConfig
-from lrslam.pipeline.parts import build_parts
+from lrslam.pipeline.contracts import Refinement, Seed
+from lrslam.pipeline.parts import Parts, build_parts
 from lrslam.pipeline.timing import StageTimer
 from lrslam.pipeline.trajectory import Trajectory
 
@@ -86,10 +87,9 @@ class SlamRunner:
 
     def __init__(self, cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray,
                  timer: StageTimer | None = None) -> None:
-        self.backend_cfg = cfg.backend
         self.timer = timer or StageTimer()
         self.traj = Trajectory()
-        self.parts = build_parts(cfg, K, height, width, bound)
+        self.parts: Parts = build_parts(cfg, K, height, width, bound)
         self._seeds: list[np.ndarray] = []
         self._frontend: list[np.ndarray] = []
         self._records: list[FrameRecord] = []
@@ -104,8 +104,7 @@ class SlamRunner:
         """First frame: fixes the world frame at ``T_w_c0`` and initialises every part. ``progress(done, total)``
         is called per iteration of the field's first-frame fit (the longest step of a run)."""
         p = self.parts
-        if frame.valid_depth_fraction() == 0:
-            raise InputError(f"frame {frame.index}: the first frame has no valid depth; cannot initialise the map")
+        frame.require_depth()
         T0 = np.asarray(T_w_c0, dtype=np.float64)
         p.seeder.start(frame, T0)
         p.keyframer.start(frame)
@@ -116,7 +115,7 @@ class SlamRunner:
             with self.timer("graph"):
                 p.backend.start(frame, T0)
         self.traj.add(T0, is_keyframe=True)
-        return self._record(FrameRecord(frame.index, keyframe=True), T0, T0)
+        return self._record(FrameRecord(frame.index, keyframe=True), Seed(T0), T0)
 
     def step(self, frame: Frame) -> FrameRecord:
         """Process the next frame (indices must follow :meth:`start` in order)."""
@@ -128,26 +127,22 @@ class SlamRunner:
 
         # 1. seed (after fast motion, a background mapping round is waited for first: see ScheduleConfig)
         if p.mapper is not None and p.mapper.must_wait(self.traj):
-            with self.timer("map"):
-                self._write_mapped(p.mapper.collect())
+            self._sync_mapper()
         with self.timer("seed"):
             seed = p.seeder.seed(frame, self.traj)
         rec.seed_ok = seed.ok
         if seed.note:
             rec.notes.append(seed.note)
         if p.backend is not None:
-            p.backend.on_frame(seed)
+            p.backend.on_frame(seed.odometry)
 
         # 2. refine
         T, information = seed.T_w_c, None
-        if p.field is not None and rec.has_depth:
+        if p.refiner is not None and rec.has_depth:
             with self.timer("refine"):
                 ref = p.refiner.refine(frame, seed)
-            rec.refine_ok, rec.refine_accepted, information = ref.ok, ref.accepted, ref.information
-            rec.refine_iters, rec.refine_start = ref.iters, ref.start
-            T = ref.T_w_c
-            if ref.note:
-                rec.notes.append(ref.note)
+            T, information = ref.T_w_c, ref.information
+            self._note_refinement(rec, ref)
 
         # 3. keyframe
         with self.timer("keyframe"):
@@ -162,10 +157,23 @@ class SlamRunner:
 
         # 5-6. graph and re-map (on the mapped keyframe poses: a background round is waited for)
         if p.backend is not None and rec.keyframe:
-            with self.timer("map"):
-                self._write_mapped(p.mapper.collect() if p.mapper is not None else {})
+            self._sync_mapper()
             self._graph_and_remap(frame, information, rec)
-        return self._record(rec, seed.T_w_c, self.traj.pose(idx))
+        return self._record(rec, seed, self.traj.pose(idx))
+
+    @staticmethod
+    def _note_refinement(rec: FrameRecord, ref: Refinement) -> None:
+        rec.refine_ok, rec.refine_accepted = ref.ok, ref.accepted
+        rec.refine_iters, rec.refine_start = ref.iters, ref.start
+        if ref.note:
+            rec.notes.append(ref.note)
+
+    def _sync_mapper(self) -> None:
+        """The one synchronisation point with a background mapping round: wait for it and write its poses back
+        (nothing to wait for in the serial schedule or without a mapper)."""
+        if self.parts.mapper is not None:
+            with self.timer("map"):
+                self._write_mapped(self.parts.mapper.collect())
 
     def _write_mapped(self, refined: dict) -> None:
         """Mapper-optimised poses (the round's frame and window keyframes) back into the trajectory."""
@@ -174,27 +182,28 @@ class SlamRunner:
                 self.traj.set_pose(fid, T_opt)
 
     def _graph_and_remap(self, frame: Frame, information: np.ndarray | None, rec: FrameRecord) -> None:
-        p, c = self.parts, self.backend_cfg
+        """Steps 5-6: the backend's verdict on the new keyframe, its corrections written into the trajectory,
+        and the field re-mapped over the keyframes it names."""
+        p = self.parts
         with self.timer("graph"):
             corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information)
         rec.loops, rec.solved = corr.loops, corr.solved
         if not corr.solved:
             return
-        moved = self.traj.apply_corrections(corr.poses, c.write_min_shift_m, c.write_min_shift_deg)
-        big = [k for k, (d_t, _) in sorted(moved.items(), key=lambda kv: -kv[1][0]) if d_t > c.remap_min_shift_m]
-        if big and p.mapper is not None:
+        self.traj.apply_corrections(corr.poses)
+        if corr.remap and p.mapper is not None:
             with self.timer("remap"):
-                p.mapper.remap(self.traj.keyframe_poses(), big[: c.remap_keyframes])
+                p.mapper.remap(self.traj.keyframe_poses(), list(corr.remap))
             rec.remapped = True
             self.n_remaps += 1
-            log.info("keyframe %d: graph moved %d keyframe(s) (max %.3f m); re-mapped %d", frame.index, len(moved),
-                     moved[big[0]][0], min(len(big), c.remap_keyframes))
+            log.info("keyframe %d: graph moved %d keyframe(s) (max %.3f m); re-mapped %d", frame.index,
+                     len(corr.poses), corr.shifts[corr.remap[0]][0], len(corr.remap))
 
-    def _record(self, rec: FrameRecord, T_seed: np.ndarray, T: np.ndarray) -> FrameRecord:
-        self._seeds.append(np.asarray(T_seed, dtype=np.float64).copy())
-        frontend = getattr(self.parts.seeder, "frontend_pose", None)
+    def _record(self, rec: FrameRecord, seed: Seed, T: np.ndarray) -> FrameRecord:
+        self._seeds.append(np.asarray(seed.T_w_c, dtype=np.float64).copy())
+        frontend = self.parts.seeder.frontend_pose()
         if frontend is not None:
-            self._frontend.append(frontend())
+            self._frontend.append(frontend)
         self._records.append(rec)
         return rec
 
@@ -207,7 +216,7 @@ class SlamRunner:
         return {
             "trajectory": self.traj.state_dict(),
             "seeder": p.seeder.state_dict(), "keyframer": p.keyframer.state_dict(),
-            "field": p.field.state_dict() if p.field is not None else None,
+            "field": p.mapper.state_dict() if p.mapper is not None else None,
             "backend": p.backend.state_dict() if p.backend is not None else None,
             "seeds": np.stack(self._seeds) if self._seeds else np.zeros((0, 4, 4)),
             "frontend": np.stack(self._frontend) if self._frontend else None,
@@ -218,13 +227,13 @@ class SlamRunner:
     def restore(self, state: dict) -> None:
         """Continue from :meth:`checkpoint` output (instead of :meth:`start`)."""
         p = self.parts
-        if (state["field"] is None) != (p.field is None) or (state["backend"] is None) != (p.backend is None):
+        if (state["field"] is None) != (p.mapper is None) or (state["backend"] is None) != (p.backend is None):
             raise InputError("checkpoint: it was saved by a runner built from other parts")
         self.traj.load_state_dict(state["trajectory"])
         p.seeder.load_state_dict(state["seeder"])
         p.keyframer.load_state_dict(state["keyframer"])
-        if p.field is not None:
-            p.field.load_state_dict(state["field"])
+        if p.mapper is not None:
+            p.mapper.load_state_dict(state["field"])
         if p.backend is not None:
             p.backend.load_state_dict(state["backend"])
         self._seeds = [np.asarray(T, dtype=np.float64) for T in state["seeds"]]
@@ -244,8 +253,7 @@ class SlamRunner:
         p = self.parts
         field_mesh = None
         if p.mapper is not None:
-            with self.timer("map"):
-                self._write_mapped(p.mapper.collect())
+            self._sync_mapper()
             p.mapper.stop()
             if mesh:
                 with self.timer("mesh"):
@@ -260,12 +268,12 @@ class SlamRunner:
             "refinements_kept": sum(bool(r.refine_accepted) for r in recs),
             "refinements_rejected": sum(r.refine_ok is True and not r.refine_accepted for r in recs),
             "frames_without_depth": sum(not r.has_depth for r in recs),
-            "mapping_poses_reverted": p.field.reverted_poses if p.field is not None else 0,
+            "mapping_poses_reverted": p.mapper.reverted_poses if p.mapper is not None else 0,
             "seeds_overruled_by_field": sum(r.refine_start > 0 for r in recs),
             "refine_iters_mean": float(np.mean([r.refine_iters for r in recs if r.refine_ok is not None] or [0])),
         }
         return SlamResult(
             poses=self.traj.poses(), keyframe_ids=tuple(self.traj.keyframe_ids()), seed_poses=np.stack(self._seeds),
             frontend_poses=np.stack(self._frontend) if self._frontend else None, records=recs, counts=counts,
-            mesh=field_mesh, parameters=p.field.parameter_count() if p.field is not None else None,
-            device=str(p.field.device) if p.field is not None else None)
+            mesh=field_mesh, parameters=p.mapper.parameter_count() if p.mapper is not None else None,
+            device=p.mapper.device if p.mapper is not None else None)

@@ -1,7 +1,7 @@
 """End-of-run sanity check: a run that "finished" but whose result cannot be trusted says so.
 
 ``status: degraded`` (with ``degraded_reasons``) when every field refine failed, camera poses left the scene
-bound (field / fused modes), or a pose or metric is not finite; ``status: ok`` otherwise. ``lrslam run``
+bound (runs with a field), or a pose or metric is not finite; ``status: ok`` otherwise. ``lrslam run``
 prints the reasons and exits with code 3 on a degraded run.
 """
 
@@ -13,9 +13,6 @@ from typing import Any
 import numpy as np
 
 __all__ = ["run_status", "nonfinite_keys"]
-
-_FIELD_MODES = ("field", "fused")
-
 
 def nonfinite_keys(obj: Any, prefix: str = "") -> list[str]:
     """Dotted keys of every non-finite float in a nested dict / list (``"timings.map.total_s"``, ...)."""
@@ -31,17 +28,18 @@ def nonfinite_keys(obj: Any, prefix: str = "") -> list[str]:
     return out
 
 
-def run_status(metrics: dict, poses: np.ndarray, bound: np.ndarray, mode: str) -> tuple[str, list[str]]:
-    """``("ok" | "degraded", reasons)`` from a run's metrics, its poses (N, 4, 4) ``T_w_c`` and bound (3, 2) m."""
+def run_status(metrics: dict, poses: np.ndarray, bound: np.ndarray, has_field: bool) -> tuple[str, list[str]]:
+    """``("ok" | "degraded", reasons)`` from a run's metrics, its poses (N, 4, 4) ``T_w_c`` and bound (3, 2) m;
+    ``has_field``: the run refined poses with a field (its refinements and bound then count)."""
     reasons: list[str] = []
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     n = len(poses)
-    if mode in _FIELD_MODES and n > 1 and metrics.get("refine_failures", 0) >= n - 1:
+    if has_field and n > 1 and metrics.get("refine_failures", 0) >= n - 1:
         reasons.append(f"every field refine failed ({metrics['refine_failures']} of {n - 1} frames)")
     finite = np.all(np.isfinite(poses), axis=(1, 2))
     if not finite.all():
         reasons.append(f"{int((~finite).sum())} of {n} poses are not finite")
-    if mode in _FIELD_MODES and finite.any():
+    if has_field and finite.any():
         b = np.asarray(bound, dtype=np.float64)
         c = poses[finite, :3, 3]
         out = ~np.all((c >= b[:, 0]) & (c <= b[:, 1]), axis=1)

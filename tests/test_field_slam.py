@@ -46,7 +46,7 @@ def _field_runner(cfg: FieldSLAMConfig, bound, map_every=4, keyframe_every=4):
     from lrslam.pipeline.runner import SlamRunner
 
     base = build_config(mode="field", overrides=[f"schedule.map_every={map_every}",
-                                                 f"schedule.keyframe_every={keyframe_every}"])
+                                                 f"keyframes.every_n={keyframe_every}"])
     run_cfg = RunConfig.model_validate(base.model_dump() | {"field": cfg.model_dump()})
     return SlamRunner(run_cfg, K_SMALL, H_SMALL, W_SMALL, bound)
 

@@ -10,9 +10,10 @@ from lrslam.frame import Frame
 from lrslam.backend.keyframe_link import KeyframeLinkMeasurement
 from lrslam.backend.loop_closure import LoopConstraint
 from lrslam.geometry import diagonal_information, exp_se3, inv, make_pose, pose_error
-from lrslam.pipeline.config import BackendConfig, build_config
-from lrslam.pipeline.parts import (ConstantVelocitySeeder, EveryNKeyframer, GraphBackend, NoRefiner,
-                                   OdometrySeeder, PolicyKeyframer, build_parts)
+from lrslam.backend.policy import BackendConfig, GraphBackend
+from lrslam.pipeline.config import build_config
+from lrslam.pipeline.parts import (ConstantVelocitySeeder, EveryNKeyframer, OdometrySeeder, PolicyKeyframer,
+                                   build_parts)
 
 INFO = diagonal_information(np.radians(0.5), 0.01)
 
@@ -90,9 +91,11 @@ def test_no_loop_leaves_mapper_refined_keyframes_where_the_mapper_put_them():
     _feed(backend, refined, refine=mapper)
     corr = backend.on_keyframe(_frame(6), refined | {6: refined[5] @ make_pose(np.eye(3), [0.1, 0, 0])}, INFO)
     assert corr.solved
+    # only keyframes the solve moved beyond the write threshold come back; none of them by a millimetre
     for k, T in corr.poses.items():
         d_t, d_r = pose_error(T, (refined | {6: refined[5] @ make_pose(np.eye(3), [0.1, 0, 0])})[k])
         assert d_t < 1e-3 and d_r < 0.05, (k, d_t, d_r)
+        assert corr.shifts[k] == pytest.approx((d_t, d_r))
 
 
 def test_only_loops_with_a_real_correction_trigger_a_solve():
@@ -127,7 +130,7 @@ def test_modes_are_presets_of_one_factory():
         kinds[mode] = (type(p.seeder), type(p.refiner).__name__, type(p.keyframer), p.mapper is not None,
                        p.backend is not None)
     assert kinds["field"] == (ConstantVelocitySeeder, "FieldRefiner", EveryNKeyframer, True, False)
-    assert kinds["frontend"] == (OdometrySeeder, NoRefiner.__name__, PolicyKeyframer, False, False)
+    assert kinds["frontend"] == (OdometrySeeder, "NoneType", PolicyKeyframer, False, False)
     assert kinds["fused"] == (OdometrySeeder, "FieldRefiner", PolicyKeyframer, True, True)
     # the field arbitrates between seeds only where it refines them
     assert build_parts(build_config(mode="frontend"), K, 48, 64, bound).seeder.disagreement is None

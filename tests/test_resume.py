@@ -159,7 +159,7 @@ def test_runner_continues_from_a_checkpoint_file_exactly(seq_dir, tmp_path, mode
         for f in frames[1:8]:
             a.step(f)
         if background and mode == "field":   # a round's result is still to be taken: the checkpoint carries it
-            assert a.parts.field.background.busy
+            assert a.parts.mapper.field.background.busy
         b = runner()
         b.restore(_through_file(a.checkpoint(), tmp_path))
         assert_same(a.checkpoint(), b.checkpoint())

@@ -76,15 +76,15 @@ def test_run_status():
 
     bound = np.array([[-1.0, 1.0]] * 3)
     poses = np.repeat(np.eye(4)[None], 4, axis=0)
-    assert run_status({"refine_failures": 0, "ate_rmse_cm": 1.0}, poses, bound, "field") == ("ok", [])
-    status, why = run_status({"refine_failures": 3}, poses, bound, "fused")
+    assert run_status({"refine_failures": 0, "ate_rmse_cm": 1.0}, poses, bound, True) == ("ok", [])
+    status, why = run_status({"refine_failures": 3}, poses, bound, True)
     assert status == "degraded" and "every field refine failed" in why[0]
-    assert run_status({"refine_failures": 3}, poses, bound, "frontend") == ("ok", [])
+    assert run_status({"refine_failures": 3}, poses, bound, False) == ("ok", [])
     far = poses.copy()
     far[2, 0, 3] = 5.0
-    assert "1 of 4 camera poses left the scene bound" in run_status({}, far, bound, "field")[1][0]
+    assert "1 of 4 camera poses left the scene bound" in run_status({}, far, bound, True)[1][0]
     assert "non-finite metrics: mesh_accuracy_cm" in run_status({"mesh_accuracy_cm": math.inf}, poses, bound,
-                                                                "frontend")[1][0]
+                                                                False)[1][0]
 
 
 def test_prepass_bound_covers_every_view_of_a_walking_camera(tmp_path):

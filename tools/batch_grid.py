@@ -122,9 +122,11 @@ def expand_grid(sequences: list[str], modes: list[str], seeds: int = 1, represen
     jobs: list[Job] = []
     for spec in specs:
         for mode in dict.fromkeys(modes):
-            grid = [(None, 0)] if mode == "frontend" else [(r, s) for r in reprs for s in range(seeds)]
+            # a run without a field neither uses a representation nor a seed (its odometry is deterministic)
+            with_field = load_run_config(spec.preset, None, overrides=overrides, mode=mode).cfg.parts.refiner == "field"
+            grid = [(r, s) for r in reprs for s in range(seeds)] if with_field else [(None, 0)]
             for rep, seed in grid:
-                ov = list(overrides or []) + ([f"field.seed={seed}"] if mode != "frontend" else [])
+                ov = list(overrides or []) + ([f"field.seed={seed}"] if with_field else [])
                 loaded = load_run_config(spec.preset, rep, overrides=ov, mode=mode)
                 variant = mode if rep is None else f"{mode}-{rep}"
                 name = f"{spec.name}/{variant}/s{seed}"

@@ -85,10 +85,11 @@ def _discover(root: Path) -> list[dict[str, Any]]:
     for rel, rec, seq in found:
         rep = ((rec.get("provenance") or {}).get("presets") or {}).get("representation")
         mode = rec.get("mode", "?")
+        with_field = (rec.get("parts") or {}).get("refiner", "field") != "none"   # no field: no representation
         metrics = _read_json(root / rel / "metrics.json")
         entries.append({
             "name": rel, "sequence": seq, "sequence_name": names.get(seq, rel.split("/")[0]),
-            "variant": mode if not rep or mode == "frontend" else f"{mode}-{rep}", "mode": mode,
+            "variant": f"{mode}-{rep}" if rep and with_field else mode, "mode": mode,
             "representation": rep, "seed": (rec.get("field") or {}).get("seed", 0), "run_dir": rel,
             "status": (metrics or {}).get("status", "failed"),
             "error": None if metrics else _last_error(root / rel)})
