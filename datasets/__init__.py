@@ -10,7 +10,8 @@ Usage::
     gt = seq.gt_poses()  # (N, 4, 4) T_w_c or None; evaluation only
 
 Readers (see each module's docstring for layout, units and conventions): ``tum``, ``synthetic`` (TUM layout
-+ ``scene.yaml``, written by ``lrslam synth``), ``replica`` (NICE-SLAM layout), ``scannet``, ``7scenes``.
++ ``scene.yaml``, written by ``lrslam synth``), ``replica`` (NICE-SLAM layout), ``scannet``, ``7scenes``,
+``rosbag`` (a ROS 1 ``.bag`` file or a ROS 2 bag folder: Image + CameraInfo topics, no ground truth).
 Every reader returns depth in metres (float32, 0 = invalid), colour as uint8 RGB, K for the output images and
 ground-truth poses ``T_w_c`` with OpenCV camera axes.
 """
@@ -20,6 +21,6 @@ from lrslam.datasets.options import ReaderOptions
 from lrslam.datasets.registry import READERS, detect_layout, open_sequence, register
 
 # Importing the reader modules registers them (order = order of READERS).
-from lrslam.datasets import tum, synthetic, replica, scannet, sevenscenes  # noqa: E402,F401  isort: skip
+from lrslam.datasets import tum, synthetic, replica, scannet, sevenscenes, rosbag  # noqa: E402,F401  isort: skip
 
 __all__ = ["open_sequence", "detect_layout", "READERS", "register", "ReaderOptions", "Sequence", "SourceIndex"]

@@ -34,6 +34,9 @@ class ReaderOptions(StrictModel):
             distortion model is not applied) unless ``distortion`` is given.
         distortion: OpenCV ``k1 k2 p1 p2 k3`` of the colour camera that goes with an intrinsics override.
         depth_scale: raw depth units per metre (metres = raw / depth_scale), overriding the reader's own.
+        rgb_topic, depth_topic, camera_info_topic: ROS bags only (:mod:`lrslam.datasets.rosbag`): the
+            ``sensor_msgs/Image`` colour and depth topics and the ``sensor_msgs/CameraInfo`` topic to read; None =
+            the bag's only topic of that kind. Other readers ignore them.
     """
 
     stride: PositiveInt = 1
@@ -47,6 +50,12 @@ class ReaderOptions(StrictModel):
     cy: float | None = None
     distortion: tuple[float, float, float, float, float] | None = None
     depth_scale: PositiveFloat | None = None
+    rgb_topic: str | None = Field(None, description="ROS bags: the sensor_msgs/Image colour topic (None: the only "
+                                  "one with a colour encoding)")
+    depth_topic: str | None = Field(None, description="ROS bags: the sensor_msgs/Image depth topic (None: the only "
+                                    "one with a depth encoding)")
+    camera_info_topic: str | None = Field(None, description="ROS bags: the sensor_msgs/CameraInfo topic giving K "
+                                          "(None: the only one, or the one beside the depth topic)")
 
     @model_validator(mode="after")
     def _intrinsics_all_or_none(self) -> ReaderOptions:

@@ -14,7 +14,7 @@ __all__ = ["LoadedConfig", "load_run_config", "default_preset"]
 
 # Reader name -> packaged dataset preset (paper / GPU-sized); ``<name>-cpu`` is its CPU-sized variant.
 _READER_PRESET = {"tum": "tum", "7scenes": "7scenes", "replica": "replica", "scannet": "scannet",
-                  "synthetic": "synthetic"}
+                  "synthetic": "synthetic", "rosbag": "rosbag"}
 
 
 def default_preset(path, cuda: bool | None = None) -> tuple[str | None, str]:

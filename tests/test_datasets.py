@@ -105,7 +105,7 @@ def test_reader_options_validation():
 
 
 def test_registry_and_layout_detection(tmp_path):
-    assert set(READERS) == {"tum", "synthetic", "replica", "scannet", "7scenes"}
+    assert set(READERS) == {"tum", "synthetic", "replica", "scannet", "7scenes", "rosbag"}
     assert all(cls.name == name for name, cls in READERS.items())
     write_tum_folder(tmp_path / "tum", n=1)
     write_replica_folder(tmp_path / "replica", n=1)
