@@ -8,13 +8,16 @@ output is strict JSON (:func:`lrslam.jsonio.dumps`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import numpy as np
 import typer
 
 from lrslam.errors import InputError
 from lrslam.jsonio import dumps
+
+if TYPE_CHECKING:
+    from lrslam.evaluation.mesh_protocol import MeshProtocol
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True,
                        help="Evaluate a run: ATE of a TUM trajectory, reconstruction metrics of a mesh.")
@@ -78,19 +81,47 @@ def mesh(
     test, 200,000 points. ``lrslam-v0`` (ours before issue 11): faces with all vertices seen, at most 50 poses,
     no ICP, 200,000 points, depth L1 from 100 views near the trajectory. See ``mesh_protocol``.
     """
-    from dataclasses import replace
-
-    from lrslam.camera import intrinsics_matrix
-    from lrslam.evaluation.ate import compute_ate, read_trajectory
     from lrslam.evaluation.mesh_eval import evaluate_mesh
     from lrslam.evaluation.mesh_metrics import load_mesh
-    from lrslam.evaluation.mesh_protocol import get_protocol
 
     # 1. Inputs.
-    proto = get_protocol(protocol, n_points=n_points, face_rule=face_rule, icp=icp, depth_views=depth_views,
+    proto = _mesh_protocol(protocol, n_points, face_rule, icp, depth_views, depth_l1, threshold, occlusion)
+    _check_mesh_options(proto, traj, intrinsics, size, est_traj, max_depth)
+    est_mesh = _non_empty(load_mesh(est, "estimated mesh"), est, "estimated mesh")
+    gt_mesh = _non_empty(load_mesh(gt, "ground-truth mesh"), gt, "ground-truth mesh")
+
+    # 2. Estimated mesh into the ground-truth world.
+    if est_traj is not None:
+        est_mesh = _into_gt_world(est_mesh, est_traj, traj)
+
+    # 3. Culling against the trajectory, ICP, metrics (mesh_eval.evaluate_mesh).
+    poses, K, width, height = _culling_camera(traj, intrinsics, size) if traj is not None else (None,) * 4
+    out = evaluate_mesh(est_mesh, gt_mesh, poses, K, width, height, protocol=proto, max_depth=max_depth,
+                        stride=stride, seed=seed)
+
+    # 4. Report.
+    _echo_mesh_metrics(out, proto, threshold, as_json)
+
+
+def _mesh_protocol(name: str, n_points: int | None, face_rule: str | None, icp: bool | None,
+                   depth_views: int | None, depth_l1: str | None, threshold: float,
+                   occlusion: bool | None) -> MeshProtocol:
+    """The named protocol with the given options overriding its fields (``occlusion``: on keeps its tolerance,
+    or 0.03 m when it has none; off drops the occlusion test)."""
+    from dataclasses import replace
+
+    from lrslam.evaluation.mesh_protocol import get_protocol
+
+    proto = get_protocol(name, n_points=n_points, face_rule=face_rule, icp=icp, depth_views=depth_views,
                          depth_l1=depth_l1, threshold=threshold)
     if occlusion is not None:
         proto = replace(proto, occlusion_tol=(proto.occlusion_tol or 0.03) if occlusion else None)
+    return proto
+
+
+def _check_mesh_options(proto: MeshProtocol, traj: Path | None, intrinsics: str | None, size: str | None,
+                        est_traj: Path | None, max_depth: float | None) -> None:
+    """InputError for options that need others (culling needs all three camera options) or bad values."""
     camera_opts = {"--traj": traj, "--intrinsics": intrinsics, "--size": size}
     given = [k for k, v in camera_opts.items() if v is not None]
     if given and len(given) < 3:
@@ -102,28 +133,31 @@ def mesh(
         raise InputError("--depth-l1 trajectory needs --traj, --intrinsics and --size")
     if max_depth is not None and not max_depth > 0:
         raise InputError(f"--max-depth must be > 0 metres, got {max_depth}")
-    est_mesh = _non_empty(load_mesh(est, "estimated mesh"), est, "estimated mesh")
-    gt_mesh = _non_empty(load_mesh(gt, "ground-truth mesh"), gt, "ground-truth mesh")
 
-    # 2. Estimated mesh into the ground-truth world.
-    if est_traj is not None:
-        gt_ts, gt_poses = read_trajectory(traj)
-        res = compute_ate(*read_trajectory(est_traj), gt_ts, gt_poses)
-        est_mesh = est_mesh.copy().apply_transform(res.T_align)
 
-    # 3. Culling against the trajectory, ICP, metrics (mesh_eval.evaluate_mesh).
-    poses = K = width = height = None
-    if traj is not None:
-        _, poses = read_trajectory(traj)
-        fx, fy, cx, cy = _floats(intrinsics, 4, "--intrinsics", "fx,fy,cx,cy")
-        width, height = _floats(size, 2, "--size", "W,H")
-        if not (width.is_integer() and height.is_integer() and width > 0 and height > 0):
-            raise InputError(f"--size expects two positive integers W,H, got {size!r}")
-        width, height = int(width), int(height)
-        K = intrinsics_matrix(fx, fy, cx, cy)
-    out = evaluate_mesh(est_mesh, gt_mesh, poses, K, width, height, protocol=proto, max_depth=max_depth,
-                        stride=stride, seed=seed)
+def _into_gt_world(est_mesh, est_traj: Path, traj: Path):
+    """A copy of ``est_mesh`` moved by the ATE alignment (SE(3)) of ``est_traj`` to the GT trajectory ``traj``."""
+    from lrslam.evaluation.ate import compute_ate, read_trajectory
 
+    gt_ts, gt_poses = read_trajectory(traj)
+    res = compute_ate(*read_trajectory(est_traj), gt_ts, gt_poses)
+    return est_mesh.copy().apply_transform(res.T_align)
+
+
+def _culling_camera(traj: Path, intrinsics: str, size: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """``(poses (N, 4, 4) T_w_c, K (3, 3), width, height)`` from --traj, --intrinsics fx,fy,cx,cy and --size W,H."""
+    from lrslam.camera import intrinsics_matrix
+    from lrslam.evaluation.ate import read_trajectory
+
+    _, poses = read_trajectory(traj)
+    fx, fy, cx, cy = _floats(intrinsics, 4, "--intrinsics", "fx,fy,cx,cy")
+    width, height = _floats(size, 2, "--size", "W,H")
+    if not (width.is_integer() and height.is_integer() and width > 0 and height > 0):
+        raise InputError(f"--size expects two positive integers W,H, got {size!r}")
+    return poses, intrinsics_matrix(fx, fy, cx, cy), int(width), int(height)
+
+
+def _echo_mesh_metrics(out: dict, proto: MeshProtocol, threshold: float, as_json: bool) -> None:
     if as_json:
         typer.echo(dumps(out))
         return

@@ -6,9 +6,14 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from lrslam.trajectory_io import write_tum
+
+if TYPE_CHECKING:
+    from lrslam.evaluation.ate import AteResult
 
 __all__ = ["write_outputs"]
 
@@ -24,21 +29,25 @@ def _mesh(result, seq, poses, cfg, timer):
         return tsdf_mesh((seq[i] for i in range(len(poses))), poses, voxel=cfg.output.tsdf_voxel)
 
 
-def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> None:
+def _evaluate(metrics, seq, timestamps, poses, extra, mesh, cfg) -> dict[str | None, AteResult]:
     """ATE (nearest ground-truth sample, as ``lrslam eval ate`` and evo) of the trajectory and of ``extra``
-    (name -> (N, 4, 4) or None: the seeds, the frontend's own estimate); mesh metrics (ESLAM protocol) when the
-    sequence has a GT mesh -- evaluated un-moved when the run started in the GT world."""
+    (name -> (N, 4, 4) or None: the seeds, the frontend's own estimate) into ``metrics``; mesh metrics (ESLAM
+    protocol) when the sequence has a GT mesh -- evaluated un-moved when the run started in the GT world.
+    Returns the evaluations for the plot: ``{None: the trajectory's, name: each of extra's}``, empty without
+    ground truth."""
     from lrslam.evaluation.ate import compute_run_ate
 
     res = compute_run_ate(timestamps, poses, seq)
     if res is None:
         log.info("no ground truth: skipping ATE")
-        return
+        return {}
     metrics.update(ate_rmse_cm=res.rmse_cm, ate_mean_cm=res.mean_cm, ate_median_cm=res.median_cm,
                    ate_max_cm=res.max_cm, ate_matched=res.n_matched)
+    ates: dict[str | None, AteResult] = {None: res}
     for name, other in extra.items():
         if other is not None:
-            metrics[f"{name}_ate_rmse_cm"] = compute_run_ate(timestamps, other, seq).rmse_cm
+            ates[name] = compute_run_ate(timestamps, other, seq)
+            metrics[f"{name}_ate_rmse_cm"] = ates[name].rmse_cm
     gt_mesh = getattr(seq, "gt_mesh_path", None)
     if mesh is not None and gt_mesh is not None and Path(gt_mesh).is_file() and len(mesh.faces):
         from lrslam.evaluation.mesh_eval import evaluate_run_mesh
@@ -49,12 +58,40 @@ def _evaluate(metrics, out_dir, seq, timestamps, poses, extra, mesh, cfg) -> Non
                                 world_is_gt=cfg.initial_pose == "gt" and f0.T_w_c_gt is not None,
                                 n_points=cfg.output.eval_mesh_points, protocol=get_protocol("eslam", depth_views=0))
         metrics.update({f"mesh_{k}": v for k, v in rec.items()})
+    return ates
 
 
 def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bound, bound_src, progress,
                   frame_seconds: np.ndarray | None = None) -> dict:
     """Write trajectory / keyframes / seed / frontend TUM files, the mesh, the plot; return the metrics dict.
-    ``frame_seconds``: (N,) wall time per frame, for the first-third / last-third speed figures."""
+    ``frame_seconds``: (N,) wall time per frame, for the first-third / last-third speed figures.
+
+    The ATE is evaluated once (:func:`_evaluate`): ``metrics.json`` and the plot's legend show the same numbers."""
+    # 1. Trajectories: the run's own, its seeds, the frontend's own estimate (when the run has a frontend).
+    extra = _write_trajectories(out_dir, cfg, result, timestamps)
+    # 2. What the run was and how fast.
+    metrics = _run_metrics(cfg, result, wall_s, bound, bound_src, frame_seconds)
+    # 3. Mesh.
+    mesh = _write_mesh(out_dir, cfg, seq, result, timer, metrics) if cfg.output.mesh else None
+    # 4. Evaluation against ground truth (once: the plot shows these numbers).
+    ates: dict[str | None, AteResult] = {}
+    if cfg.output.evaluate:
+        try:
+            ates = _evaluate(metrics, seq, timestamps, result.poses, extra, mesh, cfg)
+        except Exception as e:
+            log.error("evaluation failed: %s", e)
+            metrics["evaluation_error"] = str(e)
+    metrics["timings"] = timer.summary(len(result.poses))
+    # 5. Plot.
+    if cfg.output.plots:
+        _plot(out_dir / "trajectory.png", cfg, seq, timestamps, result.poses, extra, ates)
+    return metrics
+
+
+def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.ndarray | None]:
+    """Write ``trajectory.txt``, ``keyframes.txt``, ``trajectory_seed.txt`` and (with a frontend)
+    ``trajectory_frontend.txt``; returns the others than the run's own: ``{"seed": (N, 4, 4), "frontend":
+    (N, 4, 4) or None}``."""
     poses = result.poses
     n = len(poses)
     write_tum(out_dir / "trajectory.txt", timestamps, poses, header=f"lrslam {cfg.mode} T_w_c")
@@ -65,9 +102,14 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
     frontend = result.frontend_poses[:n] if result.frontend_poses is not None else None
     if frontend is not None:
         write_tum(out_dir / "trajectory_frontend.txt", timestamps, frontend, header="frontend-only poses T_w_c")
+    return {"seed": seed, "frontend": frontend}
 
+
+def _run_metrics(cfg, result, wall_s, bound, bound_src, frame_seconds: np.ndarray | None) -> dict:
+    """What the run was and how fast: parts, counts, wall time per frame (and per third), bound, parameters."""
+    n = len(result.poses)
     metrics: dict = {
-        "mode": cfg.mode, "parts": cfg.parts.model_dump(), "n_frames": n, "n_keyframes": len(kf_ids),
+        "mode": cfg.mode, "parts": cfg.parts.model_dump(), "n_frames": n, "n_keyframes": len(result.keyframe_ids),
         **result.counts, "wall_s": round(wall_s, 3), "fpt_s": round(wall_s / max(n, 1), 4),
         "bound": np.round(bound, 4).tolist(), "bound_source": bound_src,
     }
@@ -79,35 +121,45 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
     if result.parameters is not None:
         metrics["parameters"] = result.parameters
         metrics["device"] = result.device
-
-    mesh = None
-    if cfg.output.mesh:
-        try:
-            mesh = _mesh(result, seq, poses, cfg, timer)
-            if len(mesh.faces) == 0:
-                log.warning("the mesh is empty (nothing observed inside the bound?)")
-                metrics["mesh_error"] = "empty mesh"
-            mesh.export(out_dir / "mesh.ply")
-        except Exception as e:  # a failed mesh must not lose the trajectory and metrics
-            log.error("mesh extraction failed: %s", e)
-            metrics["mesh_error"] = str(e)
-    if cfg.output.evaluate:
-        try:
-            _evaluate(metrics, out_dir, seq, timestamps, poses, {"seed": seed, "frontend": frontend}, mesh, cfg)
-        except Exception as e:
-            log.error("evaluation failed: %s", e)
-            metrics["evaluation_error"] = str(e)
-    metrics["timings"] = timer.summary(n)
-    if cfg.output.plots:
-        try:
-            from lrslam.pipeline.plots import plot_trajectories
-
-            gt = seq.gt_poses()
-            gt_pair = (np.asarray(seq.timestamps), gt) if gt is not None else None
-            trajs = {cfg.mode: (timestamps, poses), "seed": (timestamps, seed)}
-            if frontend is not None and cfg.mode != "frontend":
-                trajs["frontend"] = (timestamps, frontend)
-            plot_trajectories(out_dir / "trajectory.png", trajs, gt_pair, title=f"lrslam {cfg.mode}")
-        except Exception as e:
-            log.error("plotting failed: %s", e)
     return metrics
+
+
+def _write_mesh(out_dir: Path, cfg, seq, result, timer, metrics: dict):
+    """The run's mesh, written to ``mesh.ply``; a failure is noted in ``metrics["mesh_error"]`` (the mesh is then
+    None, or the extracted mesh when only writing it failed)."""
+    mesh = None
+    try:
+        mesh = _mesh(result, seq, result.poses, cfg, timer)
+        if len(mesh.faces) == 0:
+            log.warning("the mesh is empty (nothing observed inside the bound?)")
+            metrics["mesh_error"] = "empty mesh"
+        mesh.export(out_dir / "mesh.ply")
+    except Exception as e:  # a failed mesh must not lose the trajectory and metrics
+        log.error("mesh extraction failed: %s", e)
+        metrics["mesh_error"] = str(e)
+    return mesh
+
+
+def _frontend_is_apart(cfg) -> bool:
+    """Whether the frontend's estimate differs from the run's trajectory: a refiner or a backend moves the poses
+    after the frontend (without them, the frontend's estimate is the trajectory and is not drawn twice)."""
+    return cfg.parts.refiner != "none" or cfg.parts.backend != "none"
+
+
+def _plot(path_png: Path, cfg, seq, timestamps, poses, extra: dict[str, np.ndarray | None],
+          ates: dict[str | None, AteResult]) -> None:
+    """``trajectory.png``: the run's trajectory (named by its mode), its seeds and, when it differs from the
+    trajectory, the frontend's own estimate, on the per-frame ground truth; aligned and labelled with the
+    evaluations ``ates`` of :func:`_evaluate` (the numbers in the metrics)."""
+    try:
+        from lrslam.pipeline.plots import plot_trajectories
+
+        gt = seq.gt_poses()
+        gt_pair = (np.asarray(seq.timestamps), gt) if gt is not None else None
+        shown, shown_ates = {cfg.mode: (timestamps, poses)}, {cfg.mode: ates.get(None)}
+        for name, other in extra.items():
+            if other is not None and name not in shown and (name != "frontend" or _frontend_is_apart(cfg)):
+                shown[name], shown_ates[name] = (timestamps, other), ates.get(name)
+        plot_trajectories(path_png, shown, gt_pair, title=f"lrslam {cfg.mode}", ates=shown_ates)
+    except Exception as e:
+        log.error("plotting failed: %s", e)

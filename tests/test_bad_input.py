@@ -198,6 +198,18 @@ def _status_ok(case_out):
     return check
 
 
+def _wrote_beside_notes(folder):
+    """The run's outputs are in the folder, and the user's own file in it is untouched."""
+    def check(w, out, err):
+        d = Path(w["tmp"]) / folder
+        missing = [n for n in ("trajectory.txt", "metrics.json", "config.yaml") if not (d / n).is_file()]
+        if missing:
+            return f"the run did not write {missing}"
+        notes = d / "notes.txt"
+        return None if notes.is_file() and notes.read_text() == "my own notes\n" else "notes.txt was not kept"
+    return check
+
+
 def _batch_says_which(w, out, err):
     return None if "job nodepth/frontend/s0 failed" in err else "the failed job is not named"
 
@@ -282,7 +294,7 @@ CASES = [
          kind="io"),
     # honest outputs: runs that must end right
     Case("overwrite-foreign-folder", ["run", "{seq}", "--out", "{tmp}/foreign2", "--overwrite", *FAST], 0, [],
-         kind="run"),
+         check=_wrote_beside_notes("foreign2"), kind="run"),
     Case("failed-run-leaves-no-old-outputs", ["run", "{nodepth}", "--out", "{stale_fail}", *FAST], 2,
          ["no valid depth"], check=_no_old_outputs("stale_fail"), silent=True, kind="run"),
     Case("config-fed-back", ["run", "{seq}", "--config", "{prev}/config.yaml", "--out", "{tmp}/o/feedback", "-q"],
@@ -354,10 +366,14 @@ def run_cli(argv: list[str], capfd) -> tuple[int, str, str]:
     return int(e.value.code or 0), out, err
 
 
-def test_there_are_enough_cases_of_every_kind():
-    kinds = {c.kind for c in CASES}
-    assert len(CASES) >= 40 and kinds == {"usage", "config", "input", "io", "run"}
+def test_every_case_can_fail():
+    """Each case asserts something beyond "exit code, no traceback": one that must fail names what it failed on
+    (file / key / flag), one that must succeed checks its outputs (a run that silently did the wrong thing also
+    exits 0). Ids are unique, so a failure names one case."""
     assert len({c.id for c in CASES}) == len(CASES)
+    assert [c.id for c in CASES if c.code != 0 and not c.names] == []
+    assert [c.id for c in CASES if c.code == 0 and c.check is None] == []
+    assert {c.kind for c in CASES} <= {"usage", "config", "input", "io", "run"}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])

@@ -13,7 +13,7 @@ from lrslam.errors import InputError
 from lrslam.geometry import make_pose, random_pose
 from lrslam.evaluation.ate import compute_ate
 from lrslam.cli.evaluate import eval_app
-from lrslam.pipeline.plots import plot_trajectories
+from lrslam.pipeline.plots import plot_trajectories, read_ate_labels, trajectory_figure
 from lrslam.trajectory_io import write_tum
 
 runner = CliRunner()
@@ -134,3 +134,23 @@ def test_plot_trajectories_writes_png(tmp_path, trajectories):
                                  title="test")
         data = path.read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    assert read_ate_labels(tmp_path / "plots" / "no_gt.png") == {}
+
+
+def test_plot_labels_are_the_legend_of_the_given_evaluations(tmp_path, trajectories):
+    """With ``ates`` the plot shows those evaluations (the run's metrics), aligned by their ``T_align``, and
+    evaluates nothing itself; without, it evaluates each trajectory against ``gt`` (compute_ate)."""
+    from dataclasses import replace
+
+    ts, est, gt, *_ = trajectories
+    res = compute_ate(ts, est, ts, gt)
+    given = replace(res, rmse_cm=12.345)          # a number the plot could not have computed itself
+    fig, labels = trajectory_figure({"fused": (ts, est), "seed": (ts, est)}, (ts, gt), ates={"fused": given})
+    assert labels == {"fused": "fused (RMSE 12.35 cm)"}          # "seed" has no evaluation: drawn as given
+    top, err_ax = fig.axes
+    assert [t.get_text() for t in err_ax.get_legend().get_texts()] == list(labels.values())
+    fused_xy = top.lines[1].get_xydata()          # after the ground truth's line
+    aligned = est[:, :3, 3] @ res.T_align[:3, :3].T + res.T_align[:3, 3]
+    np.testing.assert_allclose(fused_xy, aligned[:, :2], atol=1e-9)   # the GT's widest axes: x and y
+    own = plot_trajectories(tmp_path / "own.png", {"fused": (ts, est)}, (ts, gt))
+    assert read_ate_labels(own) == {"fused": f"fused (RMSE {res.rmse_cm:.2f} cm)"}

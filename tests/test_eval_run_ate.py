@@ -94,3 +94,62 @@ def test_ground_truth_samples(run_files, tmp_path):
     assert np.allclose(T_gt[0], gt_pose(t_gt[0]), atol=1e-9)
     (seq.root / "groundtruth.txt").unlink()
     assert ground_truth_samples(open_sequence(seq.root, reader="tum", options=SMALL)) is None
+
+
+def _write_run_outputs(seq, ts, est, out, mode: str, rng, overrides: tuple[str, ...] = ()):
+    """``write_outputs`` of a run folder for the estimate ``est`` (its seeds and frontend poses: ``est`` with more
+    noise), no mesh; returns the metrics."""
+    from lrslam.pipeline.config import build_config
+    from lrslam.pipeline.outputs import write_outputs
+    from lrslam.pipeline.runner import SlamResult
+    from lrslam.pipeline.timing import StageTimer
+
+    def noisy(sigma):
+        poses = est.copy()
+        poses[:, :3, 3] += rng.normal(0.0, sigma, size=(len(est), 3))
+        return poses
+
+    result = SlamResult(poses=est, keyframe_ids=(0, 6), seed_poses=noisy(0.02), frontend_poses=noisy(0.03),
+                        records=(), counts={})
+    cfg = build_config("synthetic", overrides=["output.mesh=false", *overrides], mode=mode)
+    out.mkdir()
+    return write_outputs(out, cfg, seq, result, ts, StageTimer(), 1.0, np.zeros((3, 2)), "test", False)
+
+
+def test_the_plot_shows_the_ate_of_the_metrics(run_files, tmp_path, rng):
+    """One evaluation, one number: the trajectory plot's legend shows metrics.json's ATE of each curve. On TUM
+    ground truth (100 Hz samples, frames between them) the plot used to evaluate again against the reader's
+    per-frame *interpolated* ground truth and showed another number than metrics.json (1.28 vs 1.30 cm)."""
+    from lrslam.pipeline.plots import ate_label, read_ate_labels
+
+    seq, ts, est, _ = run_files
+    m = _write_run_outputs(seq, ts, est, tmp_path / "run", "fused", rng)
+    labels = read_ate_labels(tmp_path / "run" / "trajectory.png")
+    assert labels == {"fused": ate_label("fused", m["ate_rmse_cm"]),
+                      "seed": ate_label("seed", m["seed_ate_rmse_cm"]),
+                      "frontend": ate_label("frontend", m["frontend_ate_rmse_cm"])}
+    # on these files the plot's former evaluation (interpolated ground truth) gives another legend
+    interpolated = compute_ate(ts, est, seq.timestamps, seq.gt_poses())
+    assert ate_label("fused", interpolated.rmse_cm) != labels["fused"]
+
+
+FRONTEND_ONLY = ("parts.refiner=none", "parts.backend=none")
+
+
+@pytest.mark.parametrize("mode, overrides, curves", [
+    ("fused", (), ["fused", "seed", "frontend"]),
+    ("field", (), ["field", "seed", "frontend"]),
+    ("frontend", (), ["frontend", "seed"]),
+    ("fused", FRONTEND_ONLY, ["fused", "seed"]),   # the parts decide, not the mode's name
+])
+def test_the_frontend_curve_is_drawn_when_parts_move_the_poses_after_it(run_files, tmp_path, rng, mode, overrides,
+                                                                        curves):
+    """The frontend's own estimate is a curve of its own when a refiner or a backend moves the poses after it;
+    without them it is the run's trajectory (drawn once, under the mode's name, with the run's ATE)."""
+    from lrslam.pipeline.plots import ate_label, read_ate_labels
+
+    seq, ts, est, _ = run_files
+    m = _write_run_outputs(seq, ts, est, tmp_path / "run", mode, rng, overrides)
+    labels = read_ate_labels(tmp_path / "run" / "trajectory.png")
+    assert list(labels) == curves
+    assert labels[mode] == ate_label(mode, m["ate_rmse_cm"])

@@ -40,6 +40,12 @@ def test_every_mode_writes_a_run_folder(tiny_sequence, tmp_path, mode):
     m = json.loads((out / "metrics.json").read_text())
     assert m["mode"] == mode and m["n_frames"] == 12 and np.isfinite(m["ate_rmse_cm"]) and m["fpt_s"] > 0
     assert res.metrics["ate_rmse_cm"] == m["ate_rmse_cm"]
+    # one evaluation, one number: the plot's legend shows the metrics' ATE of each curve
+    from lrslam.pipeline.plots import ate_label, read_ate_labels
+
+    labels = read_ate_labels(out / "trajectory.png")
+    assert labels[mode] == ate_label(mode, m["ate_rmse_cm"])
+    assert labels["seed"] == ate_label("seed", m["seed_ate_rmse_cm"])
     if mode != "frontend":
         assert m["parameters"]["total"] > 0
     # every mode's mesh is a real surface (regression: the frontend TSDF mesh used to be empty) and evaluated

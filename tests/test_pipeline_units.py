@@ -62,13 +62,36 @@ def test_bound_from_frame_contains_points_and_camera():
         bound_from_frame(np.zeros_like(depth), K, T)
 
 
-def test_stage_timer_accumulates():
+def test_stage_timer_sums_each_stage_exactly(monkeypatch):
+    """A fake clock that advances by known steps: each stage's total, calls and per-frame time are exact, a
+    stage that raises is still timed, and a checkpoint round trip resumes the sums."""
+    from types import SimpleNamespace
+
+    import lrslam.pipeline.timing as timing
+
+    now = [0.0]
+    monkeypatch.setattr(timing, "time", SimpleNamespace(perf_counter=lambda: now[0]))
+
+    def stage(t, name, seconds, fail=False):
+        with t(name):
+            now[0] += seconds
+            if fail:
+                raise RuntimeError("stage failed")
+
     t = StageTimer()
-    for _ in range(3):
-        with t("a"):
-            pass
-    s = t.summary(3)
-    assert s["a"]["calls"] == 3 and s["a"]["total_s"] >= 0
+    for seconds in (0.5, 0.25, 1.0):
+        stage(t, "track", seconds)
+    stage(t, "map", 2.0)
+    with pytest.raises(RuntimeError):
+        stage(t, "map", 0.125, fail=True)
+    now[0] += 10.0                                    # time outside any stage counts nowhere
+    assert t.summary(4) == {"track": {"total_s": 1.75, "calls": 3, "per_frame_s": 0.4375},
+                            "map": {"total_s": 2.125, "calls": 2, "per_frame_s": 0.53125}}
+    resumed = StageTimer()
+    resumed.load_state_dict(t.state_dict())
+    stage(resumed, "track", 0.25)
+    assert resumed.summary(5)["track"] == {"total_s": 2.0, "calls": 4, "per_frame_s": 0.4}
+    assert t.summary(4)["track"]["calls"] == 3       # the checkpoint is a copy, not a view
 
 
 def test_long_chains_through_the_trajectory_stay_rigid(rng):

@@ -124,8 +124,23 @@ def run_grid(jobs: list[Job], out: str | Path, executor, progress: bool = True, 
     ``status: failed`` and its ``error``. ``echo(text)`` prints the skip notes (default: stderr)."""
     echo = echo or (lambda text: print(text, file=sys.stderr))
     out = Path(out)
+    # 1. Every path checked before the first job starts; jobs whose run folders are complete are skipped.
     check_jobs(jobs, out)
     out.mkdir(parents=True, exist_ok=True)
+    entries, todo = _plan(jobs, out, echo)
+    desc = executor.describe()
+    if todo:
+        echo(f"running {len(todo)} job(s): {desc}")
+    _save(out, list(entries.values()), desc)
+    # 2. The jobs, batch.json and the tables rewritten as each starts and ends.
+    _run_jobs(executor, todo, out, entries, desc, _Progress(len(todo), progress))
+    # 3. The HTML report.
+    path = _write_report(out) if report else None
+    return BatchOutcome(list(entries.values()), path)
+
+
+def _plan(jobs: list[Job], out: Path, echo) -> tuple[dict[str, dict[str, Any]], list[Job]]:
+    """Every job's entry (``skipped`` when its run folder is complete, else ``pending``) and the jobs to run."""
     entries: dict[str, dict[str, Any]] = {}
     todo: list[Job] = []
     for job in jobs:
@@ -140,11 +155,13 @@ def run_grid(jobs: list[Job], out: str | Path, executor, progress: bool = True, 
             todo.append(job)
     if len(todo) < len(jobs):
         echo(f"skipping {len(jobs) - len(todo)} job(s) whose run folders are complete")
-    desc = executor.describe()
-    if todo:
-        echo(f"running {len(todo)} job(s): {desc}")
-    _save(out, list(entries.values()), desc)
-    bar = _Progress(len(todo), progress)
+    return entries, todo
+
+
+def _run_jobs(executor, todo: list[Job], out: Path, entries: dict[str, dict[str, Any]], desc: str,
+              bar: _Progress) -> None:
+    """Run ``todo`` with ``executor``, updating ``entries`` in place; jobs an interruption left unfinished are
+    marked failed."""
     by_name = {j.name: j for j in todo}
 
     def on_start(job_dict: dict[str, Any]) -> None:
@@ -165,15 +182,17 @@ def run_grid(jobs: list[Job], out: str | Path, executor, progress: bool = True, 
             if e["status"] in ("pending", "running"):
                 e["status"], e["error"] = "failed", "not finished (the batch was interrupted)"
         _save(out, list(entries.values()), desc)
-    path = None
-    if report:
-        from lrslam.tools.report import write_report
 
-        try:
-            path = write_report(out)
-        except Exception as e:  # the runs are kept either way
-            log.error("report failed: %s", e)
-    return BatchOutcome(list(entries.values()), path)
+
+def _write_report(out: Path) -> Path | None:
+    """``report.html`` (None when it failed: the runs are kept either way)."""
+    from lrslam.tools.report import write_report
+
+    try:
+        return write_report(out)
+    except Exception as e:  # the runs are kept either way
+        log.error("report failed: %s", e)
+        return None
 
 
 def run_batch(sequences: list[str | Path], configs: dict[str, dict[str, Any]], out: str | Path,
