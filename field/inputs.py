@@ -7,7 +7,7 @@ import torch
 
 from lrslam.errors import InputError
 
-__all__ = ["resolve_device", "image_tensors", "inside_bound"]
+__all__ = ["resolve_device", "image_tensors", "has_valid_depth", "inside_bound"]
 
 
 def resolve_device(device: str) -> torch.device:
@@ -43,6 +43,11 @@ def image_tensors(rgb: np.ndarray, depth: np.ndarray, height: int, width: int, d
     d = depth.astype(np.float32, copy=True)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return torch.from_numpy(np.ascontiguousarray(rgb)).to(device), torch.from_numpy(d).to(device)
+
+
+def has_valid_depth(depth: torch.Tensor) -> bool:
+    """True when the depth tensor from :func:`image_tensors` has at least one valid (positive) pixel."""
+    return bool((depth > 0).any())
 
 
 def inside_bound(point: np.ndarray, bound: np.ndarray, margin: float = 0.0) -> bool:

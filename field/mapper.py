@@ -152,46 +152,22 @@ class Mapper:
                   progress: Callable[[int, int], None] | None = None) -> tuple[list[np.ndarray], dict]:
         """Adam on the field (and the flagged views' poses). ``poses_in``: (4, 4) ``T_w_c`` per view. Returns
         (the poses after optimisation, copies, unflagged ones unchanged; stats)."""
-        model, cfg, dev = self.model, self.cfg, self.model.device
-        groups = [{"params": model.encoding_parameters(), "lr": cfg.lr_encoding * lr_factor},
-                  {"params": model.decoder_parameters(), "lr": cfg.lr_decoder * lr_factor}]
+        dev = self.model.device
         poses_out = [np.array(T, dtype=np.float64) for T in poses_in]
         opt_idx = [i for i, o in enumerate(optimise_pose) if o]
-        pose = None
-        if opt_idx:
-            pose = PoseParams(np.stack([poses_out[i] for i in opt_idx]), cfg.pose_parameterisation, dev)
-            groups += [{"params": [pose.rotation], "lr": cfg.lr_pose_rot},
-                       {"params": [pose.translation], "lr": cfg.lr_pose_trans}]
-        opt = torch.optim.Adam(groups)
+        opt, pose = self._optimiser(poses_out, opt_idx, lr_factor)
         fixed = torch.tensor(np.stack(poses_out), dtype=torch.float32, device=dev)
         slot = torch.tensor(opt_idx, dtype=torch.long, device=dev)
         bad, done, last_loss, last_terms = 0, 0, None, {}
         for it in range(iters):
-            # 1. Pixels from the views (a random subset of views for remapping).
-            use = list(range(len(views)))
-            if views_per_iter is not None and len(use) > views_per_iter:
-                use = sorted(self.rng.choice(len(views), size=views_per_iter, replace=False).tolist())
-            per_view = max(1, cfg.n_rays // len(use))
-            batch = PixelBatch.cat([views[i].sample(per_view, i, self.gen) for i in use])
-            # 2. Rays from the current poses (optimised ones differentiable); surface inside the bound.
-            poses = fixed if pose is None else fixed.index_copy(0, slot, pose.matrices())
-            o, d = world_rays(camera_directions(batch.u, batch.v, self._Kt), poses, batch.frame)
-            inside = ray_exit_depth(o, d, model.bound) >= batch.depth
-            o, d, batch = o[inside], d[inside], batch.select(inside)
-            if len(batch.depth) == 0:
+            step = self._iteration_loss(views, views_per_iter, fixed, slot, pose)
+            if step is None:
                 continue
-            # 3. Render and loss (SDF/depth terms on rays with depth, colour on all).
-            r = render_rays(model, o, d, batch.depth, model.truncation, self.render, self.gen)
-            has_depth = batch.depth > 0
-            loss, terms = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, has_depth,
-                                         torch.ones_like(has_depth))
+            loss, terms = step
             opt.zero_grad(set_to_none=True)
             if not bool(torch.isfinite(loss)):
                 bad += 1
-                log.warning("mapping: non-finite loss at iteration %d (%d/%d), step skipped", it, bad,
-                            cfg.max_bad_steps)
-                if bad >= cfg.max_bad_steps:
-                    log.warning("mapping: aborted after %d non-finite losses; poses unchanged", bad)
+                if self._too_many_bad_steps(it, bad):
                     return [np.array(T, dtype=np.float64) for T in poses_in], {
                         "iters": done, "loss": float("nan"), "aborted": True}
                 continue
@@ -202,14 +178,68 @@ class Mapper:
                 progress(it + 1, iters)
         if done == 0 and iters > 0:
             log.warning("mapping: no usable rays (valid depth inside the scene bound) in %d iterations", iters)
-        if pose is not None:
-            if pose.finite():
-                for i, T in zip(opt_idx, pose.numpy()):
-                    poses_out[i] = T
-            else:
-                log.warning("mapping: window poses became non-finite; keeping the previous poses")
+        self._take_poses(pose, opt_idx, poses_out)
         stats = {"iters": done, "loss": float("nan") if last_loss is None else float(last_loss)}
         return poses_out, stats | {k: float(v) for k, v in last_terms.items()}
+
+    def _optimiser(self, poses: list[np.ndarray], opt_idx: list[int], lr_factor: float
+                   ) -> tuple[torch.optim.Adam, PoseParams | None]:
+        """Adam over the field (lrs x ``lr_factor``) and the poses of the views ``opt_idx`` (None: none)."""
+        model, cfg = self.model, self.cfg
+        groups = [{"params": model.encoding_parameters(), "lr": cfg.lr_encoding * lr_factor},
+                  {"params": model.decoder_parameters(), "lr": cfg.lr_decoder * lr_factor}]
+        pose = None
+        if opt_idx:
+            pose = PoseParams(np.stack([poses[i] for i in opt_idx]), cfg.pose_parameterisation, model.device)
+            groups += [{"params": [pose.rotation], "lr": cfg.lr_pose_rot},
+                       {"params": [pose.translation], "lr": cfg.lr_pose_trans}]
+        return torch.optim.Adam(groups), pose
+
+    def _iteration_loss(self, views: list[ViewPixels], views_per_iter: int | None, fixed: torch.Tensor,
+                        slot: torch.Tensor, pose: PoseParams | None) -> tuple[torch.Tensor, dict] | None:
+        """Steps 1-3 of one mapping iteration -> (loss, loss terms), None when no ray is usable."""
+        model, cfg = self.model, self.cfg
+        # 1. Pixels from the views (a random subset of views for remapping).
+        batch = self._sample_views(views, views_per_iter)
+        # 2. Rays from the current poses (optimised ones differentiable); surface inside the bound.
+        poses = fixed if pose is None else fixed.index_copy(0, slot, pose.matrices())
+        o, d = world_rays(camera_directions(batch.u, batch.v, self._Kt), poses, batch.frame)
+        inside = ray_exit_depth(o, d, model.bound) >= batch.depth
+        o, d, batch = o[inside], d[inside], batch.select(inside)
+        if len(batch.depth) == 0:
+            return None
+        # 3. Render and loss (SDF/depth terms on rays with depth, colour on all).
+        r = render_rays(model, o, d, batch.depth, model.truncation, self.render, self.gen)
+        has_depth = batch.depth > 0
+        return rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, has_depth,
+                              torch.ones_like(has_depth))
+
+    def _sample_views(self, views: list[ViewPixels], views_per_iter: int | None) -> PixelBatch:
+        """One iteration's pixels: ``n_rays`` spread over the views (at most ``views_per_iter``, chosen at random)."""
+        use = list(range(len(views)))
+        if views_per_iter is not None and len(use) > views_per_iter:
+            use = sorted(self.rng.choice(len(views), size=views_per_iter, replace=False).tolist())
+        per_view = max(1, self.cfg.n_rays // len(use))
+        return PixelBatch.cat([views[i].sample(per_view, i, self.gen) for i in use])
+
+    def _too_many_bad_steps(self, it: int, bad: int) -> bool:
+        """Log a skipped non-finite step (the ``bad``-th); True when mapping must abort."""
+        log.warning("mapping: non-finite loss at iteration %d (%d/%d), step skipped", it, bad, self.cfg.max_bad_steps)
+        if bad >= self.cfg.max_bad_steps:
+            log.warning("mapping: aborted after %d non-finite losses; poses unchanged", bad)
+            return True
+        return False
+
+    @staticmethod
+    def _take_poses(pose: PoseParams | None, opt_idx: list[int], poses_out: list[np.ndarray]) -> None:
+        """Write the optimised poses into ``poses_out`` (slots ``opt_idx``) unless they became non-finite."""
+        if pose is None:
+            return
+        if pose.finite():
+            for i, T in zip(opt_idx, pose.numpy()):
+                poses_out[i] = T
+        else:
+            log.warning("mapping: window poses became non-finite; keeping the previous poses")
 
 
 @torch.no_grad()

@@ -20,7 +20,7 @@ from lrslam.camera import check_intrinsics
 from lrslam.errors import InputError
 from lrslam.geometry import is_valid_pose
 from lrslam.field.grid import check_bound
-from lrslam.field.inputs import image_tensors, resolve_device
+from lrslam.field.inputs import has_valid_depth, image_tensors, resolve_device
 from lrslam.field.keyframes import KeyframeStore
 from lrslam.field.mapper import Mapper
 from lrslam.field.mesh import extract_mesh
@@ -75,7 +75,7 @@ class FieldSLAM:
         Raises InputError when the frame has no valid depth or the pose is invalid."""
         T = self._pose(T_w_c)
         rgb_t, depth_t = image_tensors(rgb, depth, self.height, self.width, self.device)
-        if not bool((depth_t > 0).any()):
+        if not has_valid_depth(depth_t):
             raise InputError(f"frame {frame_id}: the first frame has no valid depth; cannot initialise the field")
         stats = self.mapper.initialise(frame_id, rgb_t, depth_t, T, progress)
         self.initialised = True
@@ -110,7 +110,7 @@ class FieldSLAM:
         self._require_init()
         T = self._pose(T_w_c)
         rgb_t, depth_t = image_tensors(rgb, depth, self.height, self.width, self.device)
-        if not bool((depth_t > 0).any()):
+        if not has_valid_depth(depth_t):
             log.warning("frame %d: no valid depth; not mapped, not added as keyframe", frame_id)
             return {frame_id: T}
         poses, _stats = self.mapper.map(frame_id, rgb_t, depth_t, T, keyframe_poses, add_keyframe,

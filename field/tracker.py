@@ -27,7 +27,7 @@ import torch
 
 from lrslam.field.config import TrackerConfig
 from lrslam.geometry import diagonal_information, is_valid_pose, pose_error
-from lrslam.field.inputs import image_tensors, inside_bound
+from lrslam.field.inputs import has_valid_depth, image_tensors, inside_bound
 from lrslam.field.losses import rendering_loss
 from lrslam.field.model import SceneModel
 from lrslam.field.poses import PoseParams
@@ -70,6 +70,32 @@ def _fail(T_seed: np.ndarray, reason: str, loss_first: float = float("nan"), ite
     return TrackResult(np.array(T_seed, dtype=np.float64), False, loss_first, float("nan"), iters, reason)
 
 
+@dataclass
+class _Search:
+    """State of the tracking iterations: the first and best loss, the best pose and the early-stop counters.
+    ``failure``: why the iterations ended tracking ("" otherwise)."""
+
+    T_best: np.ndarray
+    loss_first: float = float("nan")
+    loss_best: float = float("inf")
+    done: int = 0
+    best_iter: int = 0
+    since_gain: int = 0               # early stop: iterations since the best loss dropped
+    loss_ref: float = float("inf")
+    failure: str = ""
+
+    def record(self, value: float, it: int, pose: PoseParams, cfg: TrackerConfig) -> bool:
+        """Book the (finite) loss of iteration ``it``; True when the early stop ends the iterations."""
+        if np.isnan(self.loss_first):
+            self.loss_first = value
+        if value < self.loss_best:  # the loss belongs to the pose before this step
+            self.loss_best, self.T_best, self.best_iter = value, pose.numpy()[0], it
+        self.since_gain += 1
+        if value < self.loss_ref * (1.0 - cfg.stop_min_improvement):
+            self.loss_ref, self.since_gain = value, 0
+        return bool(cfg.stop_patience and self.since_gain >= cfg.stop_patience and self.done >= cfg.min_iters)
+
+
 def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, T_w_c_init: np.ndarray,
           cfg: TrackerConfig = TrackerConfig(), render: RenderConfig = RenderConfig(),
           generator: torch.Generator | None = None) -> TrackResult:
@@ -92,19 +118,51 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
     dev = model.device
     h, w = np.asarray(depth).shape[:2]
     rgb_t, depth_t = image_tensors(rgb, depth, h, w, dev)
-    if not bool((depth_t > 0).any()):
-        return _fail(T_seed, "no valid depth in the frame")
-    if not inside_bound(T_seed[:3, 3], model.bound_np, cfg.bound_margin):
-        return _fail(T_seed, f"seed camera centre {np.round(T_seed[:3, 3], 2).tolist()} is outside the scene bound")
+    problem = _seed_problem(model, depth_t, T_seed, cfg)
+    if problem:
+        return _fail(T_seed, problem)
 
     # 1. Pose parameters and optimiser (ESLAM: Adam with betas (0.5, 0.999)).
+    pose, opt = _pose_optimiser(T_seed, cfg, dev)
+    Kt = torch.tensor(K, dtype=torch.float32, device=dev)
+    search = _iterate(model, pose, opt, rgb_t, depth_t, Kt, T_seed, cfg, render, gen)
+    if search.failure:
+        return _fail(T_seed, search.failure, search.loss_first, search.done)
+
+    # 5. Sanity checks on the result.
+    problem = _result_problem(model, T_seed, search, cfg)
+    if problem:
+        return _fail(T_seed, problem, search.loss_first, search.done)
+
+    # 6. Paired check on fixed rays the iterations did not fit (also with ``fixed_rays``: the best loss on the
+    #    optimised rays is never above the seed's, so it could not reject): is the refinement better than the
+    #    seed? How well is the pose determined?
+    return _paired_check(model, rgb_t, depth_t, Kt, T_seed, search, cfg, render, gen)
+
+
+def _seed_problem(model: SceneModel, depth_t: torch.Tensor, T_seed: np.ndarray, cfg: TrackerConfig) -> str:
+    """Why the frame cannot be tracked from the seed: no valid depth or a seed outside the bound ("" if it can)."""
+    if not has_valid_depth(depth_t):
+        return "no valid depth in the frame"
+    if not inside_bound(T_seed[:3, 3], model.bound_np, cfg.bound_margin):
+        return f"seed camera centre {np.round(T_seed[:3, 3], 2).tolist()} is outside the scene bound"
+    return ""
+
+
+def _pose_optimiser(T_seed: np.ndarray, cfg: TrackerConfig, dev: torch.device
+                    ) -> tuple[PoseParams, torch.optim.Adam]:
+    """The pose parameters at the seed and their Adam optimiser (ESLAM betas, rotation and translation lrs)."""
     pose = PoseParams(T_seed, cfg.parameterisation, dev)
     opt = torch.optim.Adam([{"params": [pose.rotation], "lr": cfg.lr_rot},
                             {"params": [pose.translation], "lr": cfg.lr_trans}], betas=cfg.adam_betas)
-    Kt = torch.tensor(K, dtype=torch.float32, device=dev)
-    loss_first, loss_best, T_best, done = float("nan"), float("inf"), T_seed, 0
-    best_iter, since_gain, loss_ref = 0, 0, float("inf")   # early stop: iterations since the best loss dropped
+    return pose, opt
 
+
+def _iterate(model: SceneModel, pose: PoseParams, opt: torch.optim.Adam, rgb_t: torch.Tensor,
+             depth_t: torch.Tensor, Kt: torch.Tensor, T_seed: np.ndarray, cfg: TrackerConfig,
+             render: RenderConfig, gen: torch.Generator) -> _Search:
+    """Steps 2-4: the Adam iterations on the pose against the frozen field -> their :class:`_Search` state."""
+    search = _Search(T_seed)
     fixed = _check_rays(rgb_t, depth_t, Kt, cfg, gen, cfg.n_rays) if cfg.fixed_rays else None
 
     with model.frozen():
@@ -112,54 +170,64 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             _decay(opt, (cfg.lr_rot, cfg.lr_trans), cfg.lr_final_factor, it, cfg.iters)
             # 2. Pixels with valid depth (new ones each iteration, or the fixed set), rays from the current pose,
             #    surface inside the bound.
-            if fixed is None:
-                rows, cols = sample_pixels(cfg.n_rays, h, w, gen, cfg.ignore_edge_h, cfg.ignore_edge_w, dev)
-                batch = gather_pixels(rgb_t, depth_t, rows, cols, 0)
-                batch = batch.select(batch.depth > 0)
-                dirs_c = camera_directions(batch.u, batch.v, Kt)
-            else:
-                batch, dirs_c = fixed
-            o, d = world_rays(dirs_c, pose.matrices())
-            inside = ray_exit_depth(o, d, model.bound) >= batch.depth
-            if int(inside.sum()) < cfg.min_rays:
+            rays = _iteration_rays(model, pose, rgb_t, depth_t, Kt, cfg, gen, fixed)
+            if rays is None:
                 continue
-            o, d, batch = o[inside], d[inside], batch.select(inside)
             # 3. Render, reject outlier rays, loss.
-            r = render_rays(model, o, d, batch.depth, model.truncation, render, gen, jitter=None if fixed is None
-                            else False)
-            err = (batch.depth - r.depth.detach()).abs()
-            inlier = err < cfg.outlier_factor * err.median().clamp(min=1e-6)
-            loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, inlier, inlier)
+            loss = _iteration_loss(model, *rays, cfg, render, gen, fixed is not None)
             value = float(loss.detach())
-            done = it + 1
+            search.done = it + 1
             if not np.isfinite(value):
-                return _fail(T_seed, f"non-finite tracking loss at iteration {it}", loss_first, done)
-            if np.isnan(loss_first):
-                loss_first = value
-            if value < loss_best:  # the loss belongs to the pose before this step
-                loss_best, T_best, best_iter = value, pose.numpy()[0], it
-            since_gain += 1
-            if value < loss_ref * (1.0 - cfg.stop_min_improvement):
-                loss_ref, since_gain = value, 0
-            if cfg.stop_patience and since_gain >= cfg.stop_patience and done >= cfg.min_iters:
+                search.failure = f"non-finite tracking loss at iteration {it}"
+                return search
+            if search.record(value, it, pose, cfg):
                 break
             # 4. Step.
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+    return search
 
-    # 5. Sanity checks on the result.
-    if not np.isfinite(loss_best):
-        return _fail(T_seed, "no usable rays (valid depth inside the scene bound) in any iteration", loss_first, done)
-    dt, dr = pose_error(T_seed, T_best)
-    if dt > cfg.max_translation or dr > cfg.max_rotation_deg or not is_valid_pose(T_best, tol=1e-3):
-        return _fail(T_seed, f"diverged: {dt:.3f} m / {dr:.1f} deg from the seed", loss_first, done)
-    if not inside_bound(T_best[:3, 3], model.bound_np, cfg.bound_margin):
-        return _fail(T_seed, "refined camera centre left the scene bound", loss_first, done)
 
-    # 6. Paired check on fixed rays the iterations did not fit (also with ``fixed_rays``: the best loss on the
-    #    optimised rays is never above the seed's, so it could not reject): is the refinement better than the
-    #    seed? How well is the pose determined?
+def _iteration_rays(model: SceneModel, pose: PoseParams, rgb_t: torch.Tensor, depth_t: torch.Tensor,
+                    Kt: torch.Tensor, cfg: TrackerConfig, gen: torch.Generator, fixed: tuple | None):
+    """One iteration's rays from the current pose -> (origins, directions, PixelBatch) of the rays whose surface
+    lies inside the bound (differentiable in the pose), None when fewer than ``min_rays``."""
+    batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen, cfg.n_rays) if fixed is None else fixed
+    o, d = world_rays(dirs_c, pose.matrices())
+    inside = ray_exit_depth(o, d, model.bound) >= batch.depth
+    if int(inside.sum()) < cfg.min_rays:
+        return None
+    return o[inside], d[inside], batch.select(inside)
+
+
+def _iteration_loss(model: SceneModel, o: torch.Tensor, d: torch.Tensor, batch, cfg: TrackerConfig,
+                    render: RenderConfig, gen: torch.Generator, fixed: bool) -> torch.Tensor:
+    """Render the rays (jitter unless ``fixed``), reject outlier rays -> the tracking loss (with its graph)."""
+    r = render_rays(model, o, d, batch.depth, model.truncation, render, gen, jitter=False if fixed else None)
+    err = (batch.depth - r.depth.detach()).abs()
+    inlier = err < cfg.outlier_factor * err.median().clamp(min=1e-6)
+    loss, _ = rendering_loss(r, batch.depth, batch.rgb, model.truncation, cfg.weights, inlier, inlier)
+    return loss
+
+
+def _result_problem(model: SceneModel, T_seed: np.ndarray, search: _Search, cfg: TrackerConfig) -> str:
+    """Why the iterations' best pose is rejected: no usable rays, divergence, outside the bound ("" if kept)."""
+    if not np.isfinite(search.loss_best):
+        return "no usable rays (valid depth inside the scene bound) in any iteration"
+    dt, dr = pose_error(T_seed, search.T_best)
+    if dt > cfg.max_translation or dr > cfg.max_rotation_deg or not is_valid_pose(search.T_best, tol=1e-3):
+        return f"diverged: {dt:.3f} m / {dr:.1f} deg from the seed"
+    if not inside_bound(search.T_best[:3, 3], model.bound_np, cfg.bound_margin):
+        return "refined camera centre left the scene bound"
+    return ""
+
+
+def _paired_check(model: SceneModel, rgb_t: torch.Tensor, depth_t: torch.Tensor, Kt: torch.Tensor,
+                  T_seed: np.ndarray, search: _Search, cfg: TrackerConfig, render: RenderConfig,
+                  gen: torch.Generator) -> TrackResult:
+    """Seed and best pose on the same fresh fixed rays: keep the refinement? Information of the chosen pose."""
+    T_best = search.T_best
     with model.frozen():
         batch, dirs_c = _check_rays(rgb_t, depth_t, Kt, cfg, gen)
         l_seed, m_seed = _fixed_ray_loss(model, batch, dirs_c, T_seed, cfg, render)
@@ -170,8 +238,8 @@ def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         info, n_info = None, 0
         if cfg.information:
             info, n_info = pose_information(model, batch, dirs_c, T_out, m_ref if accepted else m_seed, cfg, render)
-    return TrackResult(T_out, True, loss_first, loss_best, done, reason, accepted, l_seed, l_ref, info, n_info,
-                       best_iter)
+    return TrackResult(T_out, True, search.loss_first, search.loss_best, search.done, reason, accepted, l_seed,
+                       l_ref, info, n_info, search.best_iter)
 
 
 def pose_losses(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, poses: list[np.ndarray],
