@@ -9,3 +9,15 @@ Conventions (poses ``T_a_b``, OpenCV camera) live in :mod:`lrslam.geometry` and 
 """
 
 __version__ = "0.1.0"
+
+__all__ = ["Slam", "FrameResult", "__version__"]
+
+
+def __getattr__(name: str):
+    """``lrslam.Slam`` / ``lrslam.FrameResult``: the streaming API (:mod:`lrslam.pipeline.slam`), imported on first
+    use so ``import lrslam`` stays light."""
+    if name in ("Slam", "FrameResult"):
+        from lrslam.pipeline import slam
+
+        return getattr(slam, name)
+    raise AttributeError(f"module 'lrslam' has no attribute {name!r}")

@@ -16,6 +16,8 @@ from __future__ import annotations
 import logging
 import platform
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,11 +29,11 @@ from lrslam.jsonio import dumps, json_safe
 from lrslam.pipeline.auto_bound import BoundCoverage, bound_from_frame, bound_from_prepass
 from lrslam.pipeline.checkpoint import CHECKPOINT_NAME, Checkpointer, check_resumable, load_checkpoint
 from lrslam.pipeline.config import RunConfig
-from lrslam.pipeline.determinism import global_rng_state, open3d_threads, seed_everything, set_global_rng_state
+from lrslam.pipeline.determinism import global_rng_state, open3d_threads, set_global_rng_state
 from lrslam.pipeline.provenance import provenance
 from lrslam.pipeline.run_folder import PartialTrajectory, prepare_run_folder
-from lrslam.pipeline.runner import SlamRunner
 from lrslam.pipeline.sanity import run_status
+from lrslam.pipeline.slam import FrameResult, Slam
 from lrslam.pipeline.timing import StageTimer
 
 __all__ = ["run_sequence", "RunResult", "choose_bound"]
@@ -75,7 +77,7 @@ def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray) -> tuple[np.ndarray
     elif cfg.bound is not None:
         b = np.asarray(cfg.bound, dtype=np.float64)
         src = "config"
-    elif getattr(seq, "bound", None) is not None:
+    elif seq.bound is not None:
         b, src = np.asarray(seq.bound, dtype=np.float64), "dataset"
     else:
         b, src = bound_from_frame(first.depth, first.K, T0, margin=cfg.auto_bound_margin), "auto (first frame)"
@@ -91,38 +93,40 @@ def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
     return {**rec, "provenance": prov}
 
 
-def _save_partial(out_dir: Path, seq, runner: SlamRunner) -> None:
+def _save_partial(out_dir: Path, seq, slam: Slam) -> None:
     """Write the poses tracked so far to ``trajectory_partial.txt`` (TUM format) after a failed run."""
     try:
-        poses = runner.poses()
+        poses = slam.poses()
         PartialTrajectory(out_dir, seq.timestamps).save(poses)
         log.error("run stopped after %d frames; poses so far in %s", len(poses), out_dir / "trajectory_partial.txt")
     except Exception as e:  # the original error matters more
         log.error("could not save the partial trajectory: %s", e)
 
 
-def _after_frame(i: int, rec, frame, runner: SlamRunner, coverage: BoundCoverage | None,
+def _after_frame(i: int, res: FrameResult, frame, slam: Slam, coverage: BoundCoverage | None,
                  partial: PartialTrajectory) -> None:
     """Per-frame bookkeeping: the periodic partial trajectory (first: a kill right after the frame's log line must
     find it saved), the bound coverage check, one run.log line."""
     if partial.due(i + 1):
-        partial.save(runner.poses())
+        partial.save(slam.poses())
     if coverage is not None and frame.valid_depth_fraction() > 0:
-        coverage.check(frame, runner.traj.pose(-1))
+        coverage.check(frame, res.T_w_c)
+    rec = res.record
     log.info("frame %d done: keyframe %s, refine %s%s", i, rec.keyframe, rec.refine_ok,
              "; " + "; ".join(rec.notes) if rec.notes else "")
 
 
-def _start(runner: SlamRunner, first, T0: np.ndarray, cfg: RunConfig, progress: bool) -> None:
-    """The first frame, with a progress bar over the field's first-frame fit (minutes on a CPU at the paper's
-    settings: never silent)."""
+@contextmanager
+def _first_fit_bar(cfg: RunConfig, progress: bool) -> Iterator[Callable[[int, int], None] | None]:
+    """A progress bar over the field's first-frame fit (minutes on a CPU at the paper's settings: never silent);
+    yields its callback (None without a field or without progress)."""
+    if not progress or cfg.parts.refiner != "field":
+        yield None
+        return
     from tqdm import tqdm
 
-    if not progress or cfg.parts.refiner != "field":
-        runner.start(first, T0)
-        return
     with tqdm(total=cfg.field.mapping.first_iters, desc="first-frame fit", unit="it", leave=False) as bar:
-        runner.start(first, T0, lambda done, total: bar.update(done - bar.n))
+        yield lambda done, total: bar.update(done - bar.n)
 
 
 def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndarray, has_field: bool,
@@ -144,10 +148,9 @@ def _finish(out_dir: Path, metrics: dict, seq, poses: np.ndarray, bound: np.ndar
 
 @dataclass
 class _Progress:
-    """The run's own state besides the runner's: what a checkpoint also needs to continue the run."""
+    """The run's own state besides the Slam's: what a checkpoint also needs to continue the run."""
 
-    runner: SlamRunner
-    bound: np.ndarray
+    slam: Slam
     bound_src: str
     coverage: BoundCoverage | None
     frame_seconds: list[float]
@@ -157,57 +160,62 @@ class _Progress:
 
     def state(self, frame: int, settings: dict, timestamps: np.ndarray) -> dict:
         """The checkpoint after ``frame`` (see :mod:`lrslam.pipeline.checkpoint`)."""
-        return {"frame": frame, "config": settings, "timestamps": timestamps, "bound": self.bound,
-                "bound_source": self.bound_src, "runner": self.runner.checkpoint(), "rng": global_rng_state(),
+        return {"frame": frame, "config": settings, "timestamps": timestamps, "slam": self.slam.checkpoint(),
+                "bound_source": self.bound_src, "rng": global_rng_state(),
                 "frame_seconds": np.asarray(self.frame_seconds), "elapsed_s": time.perf_counter() - self.t_start,
                 "coverage_frames": None if self.coverage is None else list(self.coverage.frames),
                 "resumed_at": list(self.resumed_at)}
 
 
-def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False) -> _Progress:
-    """A new run: seed every RNG, choose the bound, build the runner and process the first frame."""
-    seed_everything(cfg.seed)
-    T0 = np.eye(4)
+def _initial_pose(cfg: RunConfig, first) -> np.ndarray:
+    """Identity, or the first ground-truth pose with ``initial_pose: gt`` (ESLAM protocol: the map lives in the GT
+    world frame, where ESLAM's bounds are given)."""
     if cfg.initial_pose == "gt":
         if first.T_w_c_gt is not None:
-            T0 = first.T_w_c_gt.copy()      # ESLAM protocol: the map lives in the GT world frame
-        else:
-            log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
+            return first.T_w_c_gt.copy()
+        log.warning("initial_pose=gt but the sequence has no ground truth: starting at identity")
+    return np.eye(4)
+
+
+def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False) -> _Progress:
+    """A new run: choose the bound, start the Slam (it seeds every RNG) on the first frame."""
+    T0 = _initial_pose(cfg, first)
     bound, bound_src = choose_bound(cfg, seq, first, T0)
     log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s, seed %d", path, len(seq), seq.name,
              np.round(bound, 3).tolist(), bound_src, cfg.mode, cfg.seed)
     t_start = time.perf_counter()
-    runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
-    _start(runner, first, T0, cfg, progress)
+    with _first_fit_bar(cfg, progress) as on_fit:
+        slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit)
+        slam.track(first.rgb, first.depth, first.timestamp)
     coverage = BoundCoverage(bound) if cfg.parts.refiner == "field" else None
-    return _Progress(runner, bound, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
+    return _Progress(slam, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
 
 
 def _resumed_run(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Progress:
     """Continue a run from its checkpoint ``state`` (already checked against the config and sequence)."""
-    bound = np.asarray(state["bound"], dtype=np.float64)
-    runner = SlamRunner(cfg, first.K, first.height, first.width, bound, timer)
-    runner.restore(state["runner"])
+    slam = Slam(cfg, first.K, (first.width, first.height), timer=timer)
+    slam.restore(state["slam"])
     set_global_rng_state(state["rng"])
     coverage = None
     if state["coverage_frames"] is not None:
-        coverage = BoundCoverage(bound)
+        coverage = BoundCoverage(slam.bound)
         coverage.frames = [int(f) for f in state["coverage_frames"]]
     frame = int(state["frame"])
     log.info("resumed from the checkpoint after frame %d (%d keyframes); frames from %d on are processed again",
-             frame, len(runner.traj.keyframe_ids()), frame + 1)
-    return _Progress(runner, bound, str(state["bound_source"]), coverage, [float(x) for x in state["frame_seconds"]],
+             frame, slam.n_keyframes, frame + 1)
+    return _Progress(slam, str(state["bound_source"]), coverage, [float(x) for x in state["frame_seconds"]],
                      time.perf_counter() - float(state["elapsed_s"]), frame + 1,
                      [int(x) for x in state["resumed_at"]] + [frame + 1])
 
 
 def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialTrajectory,
             checkpoints: Checkpointer, checkpoint_state, out_dir: Path, progress: bool) -> None:
-    """Process frames ``run.next_frame ..`` of ``seq``: step, per-frame bookkeeping, a checkpoint when due
-    (``checkpoint_state(i)`` gives the state after frame i); the partial trajectory is saved on any exception."""
+    """Process frames ``run.next_frame ..`` of ``seq`` through the Slam: track, per-frame bookkeeping, a
+    checkpoint when due (``checkpoint_state(i)`` gives the state after frame i); the partial trajectory is saved on
+    any exception."""
     from tqdm import tqdm
 
-    runner = run.runner
+    slam = run.slam
     bar = tqdm(range(run.next_frame, len(seq)), desc=f"lrslam {mode}", unit="frame", disable=not progress,
                initial=run.next_frame, total=len(seq))
     try:
@@ -215,17 +223,17 @@ def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialT
             t_frame = time.perf_counter()
             with timer("io"):
                 frame = seq[i]
-            rec = runner.step(frame)
+            res = slam.track(frame.rgb, frame.depth, frame.timestamp)
             run.frame_seconds.append(time.perf_counter() - t_frame)
-            _after_frame(i, rec, frame, runner, run.coverage, partial)
-            if checkpoints.due(rec.keyframe, len(runner.traj.keyframe_ids())):
+            _after_frame(i, res, frame, slam, run.coverage, partial)
+            if checkpoints.due(res.keyframe, slam.n_keyframes):
                 with timer("checkpoint"):
                     path = checkpoints.save(checkpoint_state(i))
                 log.info("checkpoint after frame %d: %s (%.1f MB)", i, path, path.stat().st_size / 1e6)
             if progress and i % 5 == 0:
-                bar.set_postfix(kf=len(runner.traj.keyframe_ids()), loops=runner.n_loops)
+                bar.set_postfix(kf=slam.n_keyframes, loops=slam.n_loops)
     except BaseException:
-        _save_partial(out_dir, seq, runner)   # never lose what was tracked before a crash or Ctrl-C
+        _save_partial(out_dir, seq, slam)   # never lose what was tracked before a crash or Ctrl-C
         raise
     finally:
         bar.close()
@@ -255,42 +263,49 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     handler = _attach_file_log(out_dir, append=resume)
     try:
         with open3d_threads(cfg.deterministic):   # one thread: Open3D repeats bit for bit
-            seq = _open(path, cfg)
-            record = _config_record(cfg, seq, provenance(path, seq.name, presets))
-            settings = {k: v for k, v in record.items() if k != "provenance"}
-            timestamps = np.asarray(seq.timestamps, dtype=np.float64)
-            if saved is not None:
-                check_resumable(out_dir / CHECKPOINT_NAME, saved, settings, timestamps)
-            else:
-                save_yaml(out_dir / "config.yaml", record)
-            first = seq[0]
-            first.require_depth(seq.depth_path(0))
-            timer = StageTimer()
-            if saved is not None:
-                run = _resumed_run(cfg, first, timer, saved)
-            else:
-                run = _new_run(path, cfg, seq, first, timer, progress)
-            partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
-            checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
-            _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps),
-                    out_dir, progress)
-            wall = time.perf_counter() - run.t_start   # tracking and mapping; the mesh is timed as its own stage
-            result = run.runner.finish(mesh=cfg.output.mesh, mesh_resolution=cfg.output.mesh_resolution)
-            poses = result.poses
-            timestamps = timestamps[: len(poses)]
-
-            # outputs
-            from lrslam.pipeline.outputs import write_outputs
-
-            metrics = write_outputs(out_dir, cfg, seq, result, timestamps, timer, wall, run.bound, run.bound_src,
-                                    progress, np.asarray(run.frame_seconds))
-            metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
-            if run.resumed_at:
-                metrics["resumed_at_frames"] = run.resumed_at
-            metrics = _finish(out_dir, metrics, seq, poses, run.bound, cfg.parts.refiner == "field", run.coverage)
-            partial.remove()
-            checkpoints.remove()
-            return RunResult(out_dir, metrics, timestamps, poses)
+            return _run_in_folder(path, cfg, out_dir, saved, presets, progress)
     finally:
         logging.getLogger("lrslam").removeHandler(handler)
         handler.close()
+
+
+def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, presets, progress: bool) -> RunResult:
+    """1. open the sequence and record the config; 2. start (or resume) the run; 3. every frame; 4. outputs."""
+    seq = _open(path, cfg)
+    record = _config_record(cfg, seq, provenance(path, seq.name, presets))
+    settings = {k: v for k, v in record.items() if k != "provenance"}
+    timestamps = np.asarray(seq.timestamps, dtype=np.float64)
+    if saved is not None:
+        check_resumable(out_dir / CHECKPOINT_NAME, saved, settings, timestamps)
+    else:
+        save_yaml(out_dir / "config.yaml", record)
+    first = seq[0]
+    first.require_depth(seq.depth_path(0))
+    timer = StageTimer()
+    if saved is not None:
+        run = _resumed_run(cfg, first, timer, saved)
+    else:
+        run = _new_run(path, cfg, seq, first, timer, progress)
+    partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
+    checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
+    _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps), out_dir,
+            progress)
+    wall = time.perf_counter() - run.t_start   # tracking and mapping; the mesh is timed as its own stage
+    result = run.slam.finish()
+    metrics = _write_results(out_dir, cfg, seq, result, timer, wall, run, progress)
+    partial.remove()
+    checkpoints.remove()
+    return RunResult(out_dir, metrics, result.timestamps, result.poses)
+
+
+def _write_results(out_dir: Path, cfg: RunConfig, seq, result, timer: StageTimer, wall: float, run: _Progress,
+                   progress: bool) -> dict:
+    """The run folder's outputs and ``metrics.json`` (status included); returns the written metrics."""
+    from lrslam.pipeline.outputs import write_outputs
+
+    metrics = write_outputs(out_dir, cfg, seq, result, result.timestamps, timer, wall, run.slam.bound,
+                            run.bound_src, progress, np.asarray(run.frame_seconds))
+    metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
+    if run.resumed_at:
+        metrics["resumed_at_frames"] = run.resumed_at
+    return _finish(out_dir, metrics, seq, result.poses, run.slam.bound, cfg.parts.refiner == "field", run.coverage)

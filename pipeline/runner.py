@@ -61,7 +61,7 @@ class SlamResult:
     frontend_poses: (N, 4, 4) the frontend's own estimate (odometry alone) or None without one.
     records: per-frame :class:`FrameRecord`. counts: loops, solves, re-maps, reverted mapping poses ...
     mesh: the field's mesh (``trimesh.Trimesh``) or None. parameters: field parameter counts or None.
-    device: the field's device or None.
+    device: the field's device or None. timestamps: (N,) seconds of the frames (set by :class:`lrslam.Slam`).
     """
 
     poses: np.ndarray
@@ -73,6 +73,7 @@ class SlamResult:
     mesh: object | None = None
     parameters: dict | None = None
     device: str | None = None
+    timestamps: np.ndarray | None = None
 
 
 class SlamRunner:
