@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from lrslam.errors import InputError
-from lrslam.geometry import is_valid_pose
+from lrslam.geometry import checked_pose
 
 __all__ = ["key", "pose_to_gtsam", "pose_from_gtsam", "gaussian_from_information", "robust_noise",
            "values_to_dict"]
@@ -28,10 +28,7 @@ def pose_to_gtsam(T: np.ndarray, what: str = "pose"):
     """4x4 rigid transform -> ``gtsam.Pose3``; ``InputError`` naming ``what`` when not a finite rigid transform."""
     import gtsam
 
-    T = np.asarray(T, dtype=np.float64)
-    if not is_valid_pose(T):
-        raise InputError(f"{what} is not a finite 4x4 rigid transform")
-    return gtsam.Pose3(T)
+    return gtsam.Pose3(checked_pose(T, what))
 
 
 def pose_from_gtsam(pose) -> np.ndarray:

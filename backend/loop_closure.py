@@ -30,7 +30,7 @@ from lrslam.errors import InputError
 from lrslam.frontend.keyframes import view_overlap
 from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, register_rgbd
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
-from lrslam.geometry import inv, is_valid_pose, pose_error
+from lrslam.geometry import checked_pose, inv, pose_error
 
 __all__ = ["LoopClosureConfig", "LoopConstraint", "LoopCloser"]
 
@@ -221,7 +221,4 @@ class LoopCloser:
 
     @staticmethod
     def _pose(T_w_c: np.ndarray, kf_id: int) -> np.ndarray:
-        T = np.asarray(T_w_c, dtype=np.float64)
-        if not is_valid_pose(T):
-            raise InputError(f"loop closure: pose of keyframe {kf_id} is not a finite 4x4 rigid transform")
-        return T.copy()
+        return checked_pose(T_w_c, f"loop closure: pose of keyframe {kf_id}")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["InputError", "DatasetError", "OptimisationError"]
+__all__ = ["InputError", "DatasetError"]
 
 
 class InputError(ValueError):
@@ -12,6 +12,3 @@ class InputError(ValueError):
 class DatasetError(InputError):
     """A sequence that cannot be read: missing folder or file, corrupt image, unknown layout, ..."""
 
-
-class OptimisationError(RuntimeError):
-    """An optimisation that diverged (NaN loss, pose far outside the bound); callers log it and fall back."""

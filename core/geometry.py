@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
-    "make_pose", "constant_velocity", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
+    "make_pose", "constant_velocity", "checked_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
     "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
     "propagate_covariance", "orthonormalise",
 ]
@@ -178,6 +178,17 @@ def random_pose(rng: np.random.Generator, max_trans_m: float, max_rot_deg: float
     d /= np.linalg.norm(d)
     t = d * max_trans_m * rng.uniform(0.0, 1.0) ** (1.0 / 3.0)
     return make_pose(Rotation.from_rotvec(axis * angle).as_matrix(), t)
+
+
+def checked_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-4) -> np.ndarray:
+    """``T`` as a new (4, 4) float64 array; InputError "<what> is not a finite 4x4 rigid transform" when it is not
+    one (:func:`is_valid_pose` with ``tol``)."""
+    from lrslam.errors import InputError
+
+    T = np.array(T, dtype=np.float64)
+    if not is_valid_pose(T, tol=tol):
+        raise InputError(f"{what} is not a finite 4x4 rigid transform")
+    return T
 
 
 def is_valid_pose(T: np.ndarray, tol: float = 1e-4) -> bool:

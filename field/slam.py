@@ -18,7 +18,7 @@ from lrslam.field.background import BackgroundMapping
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.camera import check_intrinsics
 from lrslam.errors import InputError
-from lrslam.geometry import is_valid_pose
+from lrslam.geometry import checked_pose
 from lrslam.field.grid import check_bound
 from lrslam.field.inputs import has_valid_depth, image_tensors, resolve_device
 from lrslam.field.keyframes import KeyframeStore
@@ -231,7 +231,4 @@ class FieldSLAM:
 
     @staticmethod
     def _pose(T: np.ndarray) -> np.ndarray:
-        T = np.asarray(T, dtype=np.float64)
-        if not is_valid_pose(T, tol=1e-3):
-            raise InputError("camera pose must be a finite 4x4 rigid transform")
-        return T.copy()
+        return checked_pose(T, "camera pose", tol=1e-3)

@@ -19,8 +19,7 @@ from pydantic import Field
 
 from lrslam.camera import backproject_depth, project_points, strided_intrinsics, transform_points
 from lrslam.config import StrictModel
-from lrslam.errors import InputError
-from lrslam.geometry import inv, is_valid_pose, pose_error
+from lrslam.geometry import checked_pose, inv, pose_error
 
 __all__ = ["KeyframeConfig", "KeyframePolicy", "view_overlap"]
 
@@ -150,7 +149,4 @@ class KeyframePolicy:
 
     @staticmethod
     def _pose(T_w_c: np.ndarray, frame_index: int) -> np.ndarray:
-        T = np.asarray(T_w_c, dtype=np.float64)
-        if not is_valid_pose(T):
-            raise InputError(f"keyframe policy: pose of frame {frame_index} is not a finite 4x4 rigid transform")
-        return T
+        return checked_pose(T_w_c, f"keyframe policy: pose of frame {frame_index}")

@@ -224,7 +224,7 @@ def _load_preset(kind: str, name: str, _seen: tuple[str, ...] = ()) -> dict[str,
         if not f.is_file():
             raise InputError(f"unknown {kind} preset {name!r}; known: {', '.join(list_presets(kind))} "
                              f"(or give a path to a .yaml file)")
-        data = yaml.safe_load(f.read_text()) or {}
+        data = load_yaml(f)
     base = data.pop("base", None) if kind == "dataset" else None
     if base is None:
         return data

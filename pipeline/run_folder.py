@@ -55,14 +55,19 @@ def _is_run_folder(out: Path) -> bool:
     entries = list(out.iterdir())
     if all(_is_output(p) or p.name in _KEPT for p in entries):
         return True
-    cfg = out / "config.yaml"
-    try:
-        import yaml
+    data = read_run_record(out)
+    return data is not None and ("provenance" in data or "sequence" in data)
 
-        data = yaml.safe_load(cfg.read_text()) if cfg.is_file() else None
-    except (OSError, ValueError, yaml.YAMLError):
-        return False
-    return isinstance(data, dict) and ("provenance" in data or "sequence" in data)
+
+def read_run_record(run_dir: Path) -> dict | None:
+    """A run folder's ``config.yaml`` (settings + provenance) as a mapping; None when it is missing, unreadable
+    or not a YAML mapping."""
+    from lrslam.config import load_yaml
+
+    try:
+        return load_yaml(Path(run_dir) / "config.yaml")
+    except InputError:
+        return None
 
 
 def check_run_folder(out: Path, overwrite: bool = False) -> Path:

@@ -1,6 +1,7 @@
 """Field SLAM: the whole field-mode loop (the runner's ``field`` preset) on a synthetic sequence (ATE, mesh), the
 facade's mapping window, divergence guard, state round trip, a re-map that moves the surface, meshing."""
 
+import copy
 from contextlib import contextmanager
 
 import numpy as np
@@ -83,8 +84,8 @@ def test_field_slam_on_synthetic_sequence_tracks_and_reconstructs():
 
 
 @pytest.fixture(scope="module")
-def small_slam():
-    """A field fitted on frames 0, 2, 4, 6 at their true poses; returns (slam, frames, gt, keyframe poses)."""
+def _fitted_small_slam():
+    """A field fitted on frames 0, 2, 4, 6 at their true poses (fitted once per module; tests get copies)."""
     scene = box_room()
     gt = trajectory(60)
     frames = {i: scene.render(K_SMALL, H_SMALL, W_SMALL, gt[i]) for i in (0, 2, 4, 6, 8, 10)}
@@ -98,6 +99,14 @@ def small_slam():
             slam.map(i, *frames[i], gt[i], kf, add_keyframe=True)
             kf[i] = gt[i]
     return slam, frames, gt, kf
+
+
+@pytest.fixture
+def small_slam(_fitted_small_slam):
+    """(slam, frames, gt, keyframe poses): a fresh copy of the fitted field and of its inputs for each test, so no
+    test sees what an earlier one changed."""
+    slam, frames, gt, kf = _fitted_small_slam
+    return _copy(slam), copy.deepcopy(frames), copy.deepcopy(gt), copy.deepcopy(kf)
 
 
 def _copy(slam: FieldSLAM, **mapping) -> FieldSLAM:

@@ -175,18 +175,17 @@ def job_status(job: Job, out: Path) -> str:
     settings), ``changed`` (a complete run with other settings), or ``todo``."""
     import json
 
-    import yaml
-
     from lrslam.pipeline.config import RunConfig
+    from lrslam.pipeline.run_folder import read_run_record
 
     d = out / job.run_dir
     try:
         metrics = json.loads((d / "metrics.json").read_text())
-        record = yaml.safe_load((d / "config.yaml").read_text())
-    except (OSError, ValueError, yaml.YAMLError):
+    except (OSError, ValueError):
         return "todo"
+    record = read_run_record(d)
     if not (isinstance(metrics, dict) and metrics.get("status") in COMPLETE_STATUSES
-            and (d / "trajectory.txt").is_file() and isinstance(record, dict)):
+            and (d / "trajectory.txt").is_file() and record is not None):
         return "todo"
     want = _settings(RunConfig.model_validate(job.config).resolved())
     return "complete" if _settings(record) == want else "changed"

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from lrslam.errors import InputError
+from lrslam.pipeline.run_folder import read_run_record
 
 __all__ = ["collect_runs", "summarise", "comparison_markdown", "write_tables", "write_report"]
 
@@ -43,16 +44,6 @@ def _read_json(path: Path) -> dict[str, Any] | None:
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _read_record(run_dir: Path) -> dict[str, Any] | None:
-    import yaml
-
-    try:
-        data = yaml.safe_load((run_dir / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
         return None
     return data if isinstance(data, dict) else None
 
@@ -77,7 +68,7 @@ def _discover(root: Path) -> list[dict[str, Any]]:
     found = []
     for log_file in sorted(root.rglob("run.log")):
         d = log_file.parent
-        rec = _read_record(d) or {}
+        rec = read_run_record(d) or {}
         found.append((d.relative_to(root).as_posix(), rec, (rec.get("provenance") or {}).get("sequence")))
     paths = list(dict.fromkeys(seq for _, _, seq in found if seq))
     names = {p: s.name for p, s in zip(paths, name_sequences([SequenceSpec(p) for p in paths]), strict=True)}
@@ -245,7 +236,7 @@ def _ground_truth(root: Path, e: dict[str, Any]):
     from lrslam.pipeline.config import RECORD_KEYS, RunConfig
     from lrslam.evaluation.ate import ground_truth_samples
 
-    rec = _read_record(root / e["run_dir"]) or {}
+    rec = read_run_record(root / e["run_dir"]) or {}
     path = (rec.get("provenance") or {}).get("sequence") or e.get("sequence")
     if not path:
         return None
