@@ -6,10 +6,15 @@ Both use the TUM benchmark's tolerance: two stamps match when they differ by str
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["associate", "interpolate_poses", "MAX_DIFFERENCE"]
+from lrslam.errors import DatasetError
+
+__all__ = ["associate", "pair_colour_depth", "interpolate_poses", "MAX_DIFFERENCE"]
 
 MAX_DIFFERENCE = 0.02  # seconds, as TUM's associate.py
 
@@ -46,6 +51,31 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float = MAX
             pairs.append((i, j))
     out = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     return out[np.argsort(a[out[:, 0]], kind="stable")]
+
+
+def pair_colour_depth(t_rgb: np.ndarray, t_depth: np.ndarray, where: Path, rgb_source: str, depth_source: str,
+                      logger: logging.Logger, *, pair: str = "rgb/depth", images: str = "colour images") -> np.ndarray:
+    """A reader's colour and depth stamps associated with :func:`associate` (``MAX_DIFFERENCE``) -> (K, 2) pairs.
+
+    DatasetError naming ``where`` and both sources' stamp ranges when nothing pairs; the colour images left
+    without depth are logged on ``logger`` (the reader's), as a warning when more than 5 % of them.
+
+    Args:
+        t_rgb, t_depth: (N,), (M,) float64 seconds, neither empty.
+        where: the dataset (folder or bag) for messages. rgb_source, depth_source: where the stamps come from
+            (``rgb.txt``, a topic). pair: what is paired, in the error. images: what is dropped, in the log.
+    """
+    pairs = associate(t_rgb, t_depth, MAX_DIFFERENCE)
+    if len(pairs) == 0:
+        raise DatasetError(f"{where}: no {pair} pair within {MAX_DIFFERENCE} s ({rgb_source}: {len(t_rgb)} stamps "
+                           f"{t_rgb.min():.3f}..{t_rgb.max():.3f}, {depth_source}: {len(t_depth)} stamps "
+                           f"{t_depth.min():.3f}..{t_depth.max():.3f})")
+    dropped = len(t_rgb) - len(pairs)
+    if dropped:
+        (logger.warning if dropped > 0.05 * len(t_rgb) else logger.info)(
+            "%s: %d of %d %s have no depth image within %.2f s and are skipped", where, dropped, len(t_rgb), images,
+            MAX_DIFFERENCE)
+    return pairs
 
 
 def interpolate_poses(t_query: np.ndarray, t_samples: np.ndarray, poses: np.ndarray,

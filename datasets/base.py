@@ -4,6 +4,11 @@ A reader only has to say *where* things are: :meth:`Sequence.detect` recognises 
 :meth:`Sequence._scan` lists every frame (timestamps, image paths, ground truth) and the native camera in a
 :class:`SourceIndex`. The base class does the rest the same way for every dataset: frame selection
 (stride, max_frames), the intrinsics override, checks, lazy image loading, undistortion, resize and crop.
+
+A reader whose frames are not image files (a ROS bag) also overrides the source hooks: how the path is checked
+(:meth:`Sequence._check_source`), that the selected frames exist (:meth:`Sequence._check_frames_exist`), the
+native image size (:meth:`Sequence._read_native_size`, :meth:`Sequence._size_mismatch`) and how one frame's
+native colour and depth are loaded (:meth:`Sequence._load_frame`).
 """
 
 from __future__ import annotations
@@ -85,8 +90,7 @@ class Sequence(abc.ABC):
         root = Path(root).expanduser()
         if not root.exists():
             raise DatasetError(f"{root}: dataset folder not found")
-        if not root.is_dir():
-            raise DatasetError(f"{root}: not a folder")
+        self._check_source(root)
         self.root = root
         self.options = options if options is not None else ReaderOptions()
         self._warned: set[str] = set()
@@ -96,25 +100,23 @@ class Sequence(abc.ABC):
         if len(src.timestamps) == 0:
             raise DatasetError(f"{root}: empty sequence (0 frames) for reader '{self.name}'")
         sel = np.arange(0, len(src.timestamps), self.options.stride)[: self.options.max_frames]
+        self._selection = sel  # frame i of the selection is frame sel[i] of the SourceIndex
         self.timestamps = np.asarray(src.timestamps, dtype=np.float64)[sel]
         self._rgb_paths = [src.rgb_paths[i] for i in sel]
         self._depth_paths = [src.depth_paths[i] for i in sel]
-        for p in (*self._rgb_paths, *self._depth_paths):
-            if not p.is_file():
-                raise DatasetError(f"{p}: image file not found")
+        self._check_frames_exist()
         self._poses = None if src.poses is None else np.asarray(src.poses, dtype=np.float64)[sel]
         self._invalid_raw = src.invalid_depth_raw
         self.bound = None if src.bound is None else np.asarray(src.bound, dtype=np.float64).reshape(3, 2)
         self.gt_mesh_path = src.gt_mesh_path
 
-        # 2. Native camera (the override wins) and the image size, taken from the first selected depth image.
+        # 2. Native camera (the override wins) and the image size (the first selected depth image's).
         K_native = self.options.intrinsics_override()
         K_native = np.asarray(src.K, dtype=np.float64) if K_native is None else K_native
         self.depth_scale = float(self.options.depth_scale or src.depth_scale)
-        h, w = read_depth(self._depth_paths[0], self.depth_scale)[0].shape
+        w, h = self._read_native_size()
         if src.expected_size is not None and src.expected_size != (w, h):
-            raise DatasetError(f"{self._depth_paths[0]}: image is {w}x{h} but the dataset states "
-                               f"{src.expected_size[0]}x{src.expected_size[1]}")
+            raise DatasetError(self._size_mismatch((w, h), src.expected_size))
         try:
             check_intrinsics(K_native, w, h)
         except ValueError as e:
@@ -140,6 +142,35 @@ class Sequence(abc.ABC):
     def _scan(self) -> SourceIndex:
         """List every frame of ``self.root`` and the native camera; raise DatasetError on malformed input."""
 
+    # ----------------------------------------------------------------------------- source hooks (image files)
+    def _check_source(self, root: Path) -> None:
+        """DatasetError unless ``root`` (an existing path) is a source this reader opens: here, a folder."""
+        if not root.is_dir():
+            raise DatasetError(f"{root}: not a folder")
+
+    def _check_frames_exist(self) -> None:
+        """DatasetError naming the first selected frame whose colour or depth image is missing."""
+        for p in (*self._rgb_paths, *self._depth_paths):
+            if not p.is_file():
+                raise DatasetError(f"{p}: image file not found")
+
+    def _read_native_size(self) -> tuple[int, int]:
+        """Native ``(width, height)`` of the sequence's images: the first selected depth image's."""
+        h, w = read_depth(self._depth_paths[0], self.depth_scale)[0].shape
+        return w, h
+
+    def _size_mismatch(self, size: tuple[int, int], expected: tuple[int, int]) -> str:
+        """The message when the native ``size`` is not the ``expected`` one the dataset states."""
+        return (f"{self._depth_paths[0]}: image is {size[0]}x{size[1]} but the dataset states "
+                f"{expected[0]}x{expected[1]}")
+
+    def _load_frame(self, i: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Frame ``i`` of the selection at native size: ``(rgb (H, W, 3) uint8, depth (H, W) float32 metres with
+        invalid values 0, count of non-finite depth pixels)``."""
+        rgb = read_color(self._rgb_paths[i])
+        depth, n_nonfinite = read_depth(self._depth_paths[i], self.depth_scale, self._invalid_raw)
+        return rgb, depth, n_nonfinite
+
     # ------------------------------------------------------------------------------------------ public API
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -157,8 +188,7 @@ class Sequence(abc.ABC):
             i += n
         if not 0 <= i < n:
             raise IndexError(f"frame index {i} out of range for a sequence of {n} frames")
-        rgb = read_color(self._rgb_paths[i])
-        depth, n_nonfinite = read_depth(self._depth_paths[i], self.depth_scale, self._invalid_raw)
+        rgb, depth, n_nonfinite = self._load_frame(i)
         rgb = self._check_sizes(i, rgb, depth)
         if self._undistort is not None:
             rgb = self._undistort(rgb)

@@ -17,10 +17,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from pydantic import ConfigDict, PositiveFloat, ValidationError, field_validator
+from pydantic import ConfigDict, PositiveFloat, field_validator
 
-from lrslam.config import StrictModel, load_yaml
-from lrslam.errors import DatasetError, InputError
+from lrslam.config import StrictModel
+from lrslam.datasets.parsing import read_yaml_model
 
 __all__ = ["CameraFile", "read_camera_file", "CAMERA_FILE"]
 
@@ -48,14 +48,5 @@ class CameraFile(StrictModel):
 
 def read_camera_file(path: Path) -> CameraFile:
     """Parse an ``intrinsics.yaml`` (see the module docstring); DatasetError naming the file and the key."""
-    try:
-        data = load_yaml(path)
-    except InputError as e:  # load_yaml's messages name the file
-        raise DatasetError(str(e)) from None
-    try:
-        return CameraFile.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        where = ".".join(str(x) for x in err["loc"]) or "camera"
-        raise DatasetError(f"{path}: {where}: {err['msg']} (expected fx, fy, cx, cy in pixels; optional "
-                           "distortion [k1, k2, p1, p2, k3], depth_scale)") from None
+    return read_yaml_model(path, CameraFile, "camera", " (expected fx, fy, cx, cy in pixels; optional distortion "
+                           "[k1, k2, p1, p2, k3], depth_scale)")

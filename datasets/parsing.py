@@ -1,23 +1,30 @@
-"""Small text parsers shared by the readers: matrix files, camera-to-world pose files, TUM file lists.
+"""Small parsers shared by the readers: matrix files, camera-to-world pose files, TUM file lists, numbered
+image files, YAML files checked by a pydantic model.
 
-Each raises a one-line :class:`~lrslam.errors.DatasetError` naming the file (and line) on malformed input.
+Each raises a one-line :class:`~lrslam.errors.DatasetError` naming the file (and line or key) on malformed input.
 """
 
 from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
+from pydantic import BaseModel, ValidationError
 
-from lrslam.errors import DatasetError
+from lrslam.config import load_yaml
+from lrslam.errors import DatasetError, InputError
 from lrslam.geometry import is_valid_pose
 
 __all__ = ["read_numbers", "read_matrix", "as_pose_or_nan", "read_pose_files", "read_file_list", "numbered_files",
-           "NAN_POSE"]
+           "paired_frame_numbers", "read_yaml_model", "NAN_POSE"]
 
 log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=BaseModel)
 
 NAN_POSE = np.full((4, 4), np.nan)
 
@@ -109,6 +116,36 @@ def numbered_files(folder: Path, pattern: str) -> dict[int, Path]:
                 raise DatasetError(f"{folder}: two files for frame {i}: {out[i].name} and {p.name}")
             out[i] = p
     return out
+
+
+def paired_frame_numbers(colors: dict[int, Path], depths: dict[int, Path], depth_file: Callable[[int], Path],
+                         depth_folder: Path, logger: logging.Logger) -> list[int]:
+    """The frame numbers of ``colors`` (sorted), each of which must have a depth image in ``depths`` (both from
+    :func:`numbered_files`): DatasetError naming ``depth_file(n)`` of the first missing one. Depth images without
+    colour are ignored (logged on ``logger``, the reader's, naming ``depth_folder``)."""
+    idx = sorted(colors)
+    missing = [i for i in idx if i not in depths]
+    if missing:
+        raise DatasetError(f"{depth_file(missing[0])}: image file not found ({len(missing)} of {len(idx)} colour "
+                           "frames have no depth image)")
+    if len(depths) > len(idx):
+        logger.warning("%s: %d depth images have no colour image and are ignored", depth_folder, len(depths) - len(idx))
+    return idx
+
+
+def read_yaml_model(path: Path, model: type[M], what: str, expected: str = "") -> M:
+    """A YAML mapping file validated by the pydantic ``model``. DatasetError naming the file and, for a bad value,
+    the key (``what`` when the problem is not one key's) and ``expected`` (appended, e.g. `` (expected ...)``)."""
+    try:
+        data = load_yaml(path)
+    except InputError as e:  # load_yaml's messages name the file
+        raise DatasetError(str(e)) from None
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"]) or what
+        raise DatasetError(f"{path}: {where}: {err['msg']}{expected}") from None
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:

@@ -28,7 +28,7 @@ import numpy as np
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
 from lrslam.datasets.base import Sequence, SourceIndex
-from lrslam.datasets.parsing import as_pose_or_nan, numbered_files, read_numbers
+from lrslam.datasets.parsing import as_pose_or_nan, numbered_files, paired_frame_numbers, read_numbers
 from lrslam.datasets.registry import register
 
 __all__ = ["ReplicaReader", "REPLICA_INTRINSICS", "REPLICA_SIZE", "REPLICA_DEPTH_SCALE", "NOMINAL_FPS"]
@@ -55,13 +55,7 @@ class ReplicaReader(Sequence):
         res = self.root / "results"
         colors = numbered_files(res, r"frame(\d+)\.(?:jpg|jpeg|png)")
         depths = numbered_files(res, r"depth(\d+)\.png")
-        idx = sorted(colors)
-        missing = [i for i in idx if i not in depths]
-        if missing:
-            raise DatasetError(f"{res / f'depth{missing[0]:06d}.png'}: image file not found ({len(missing)} of "
-                               f"{len(idx)} colour frames have no depth image)")
-        if len(depths) > len(idx):
-            log.warning("%s: %d depth images have no colour image and are ignored", res, len(depths) - len(idx))
+        idx = paired_frame_numbers(colors, depths, lambda n: res / f"depth{n:06d}.png", res, log)
         override = self.options.fx is not None
         return SourceIndex(timestamps=np.asarray(idx, dtype=np.float64) / NOMINAL_FPS,
                            rgb_paths=[colors[i] for i in idx], depth_paths=[depths[i] for i in idx],

@@ -27,22 +27,18 @@ Layout: a file ending in ``.bag`` (ROS 1), or a folder holding ``metadata.yaml``
 from __future__ import annotations
 
 import logging
-import operator
 from pathlib import Path
 
 import numpy as np
 
-from lrslam.camera import check_intrinsics, intrinsics_matrix
+from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
-from lrslam.datasets.association import MAX_DIFFERENCE, associate
+from lrslam.datasets.association import pair_colour_depth
 from lrslam.datasets.base import Sequence, SourceIndex
 from lrslam.datasets.camera_file import CAMERA_FILE, read_camera_file
-from lrslam.datasets.image_ops import ImageGeometry, Undistorter
-from lrslam.datasets.options import ReaderOptions
 from lrslam.datasets.registry import register
 from lrslam.datasets.rosbag_io import (CAMERA_INFO, COLOR_ENCODINGS, DEPTH_ENCODINGS, IMAGE, BagFile, ImageStream,
                                        decode_color, decode_depth)
-from lrslam.frame import Frame
 
 __all__ = ["RosbagReader", "is_rosbag"]
 
@@ -68,8 +64,8 @@ class RosbagReader(Sequence):
     """ROS 1 ``.bag`` file or ROS 2 bag folder (see the module docstring for topics, units and camera).
 
     Reads through a :class:`~lrslam.datasets.rosbag_io.BagFile` kept open while the sequence lives; the frame
-    selection, camera checks and image geometry are the base class's (its file-based ``__init__`` and
-    ``__getitem__`` are replaced by message-based ones).
+    selection, camera checks, image geometry and frame assembly are the base class's: this class overrides only
+    its source hooks (a bag file or folder, the depth topic's image size, frames decoded from messages).
     """
 
     layout_hint = "a ROS 1 .bag file or a ROS 2 bag folder (metadata.yaml + .db3/.mcap)"
@@ -78,68 +74,33 @@ class RosbagReader(Sequence):
     def detect(cls, root: Path) -> bool:
         return is_rosbag(root)
 
-    def __init__(self, root: str | Path, options: ReaderOptions | None = None) -> None:
-        root = Path(root).expanduser()
-        if not root.exists():
-            raise DatasetError(f"{root}: dataset folder not found")
+    # ----------------------------------------------------------------------------------------- source
+    def _check_source(self, root: Path) -> None:
         if not is_rosbag(root):
             raise DatasetError(f"{root}: not a ROS bag (expected {self.layout_hint})")
-        self.root = root
-        self.options = options if options is not None else ReaderOptions()
-        self._warned: set[str] = set()
-        self._bag = BagFile(root)
 
-        # 1. Topics, message index, rgb/depth pairs; select stride / max_frames.
-        src = self._scan()
-        sel = np.arange(0, len(src.timestamps), self.options.stride)[: self.options.max_frames]
-        self.timestamps = np.asarray(src.timestamps, dtype=np.float64)[sel]
-        self._rgb_idx, self._depth_idx = self._pairs[sel, 0], self._pairs[sel, 1]
-        self._rgb_paths = [src.rgb_paths[i] for i in sel]      # "<bag>:<topic>[k]" labels for messages
-        self._depth_paths = [src.depth_paths[i] for i in sel]
-        self._poses = None
-        self.bound, self.gt_mesh_path = None, None
+    def _check_frames_exist(self) -> None:
+        """Nothing to check: every frame's messages were indexed when the bag was opened."""
 
-        # 2. Native camera (the override wins) and the image size, from the first depth message.
-        K_native = self.options.intrinsics_override()
-        K_native = np.asarray(src.K, dtype=np.float64) if K_native is None else K_native
-        self.depth_scale = float(self.options.depth_scale or src.depth_scale)
-        w, h = self._depth.size
-        if src.expected_size is not None and src.expected_size != (w, h):
-            raise DatasetError(f"{root}: depth topic {self._depth.topic} has {w}x{h} images but CameraInfo topic "
-                               f"{self._info_topic} states {src.expected_size[0]}x{src.expected_size[1]}")
-        try:
-            check_intrinsics(K_native, w, h)
-        except ValueError as e:
-            raise DatasetError(f"{root}: {e}") from None
+    def _read_native_size(self) -> tuple[int, int]:
+        return self._depth.size
 
-        # 3. Output geometry: undistort colour (override's distortion only), resize, crop.
-        self._native_size = (w, h)
-        self._geometry = ImageGeometry(w, h, self.options.resize, self.options.crop_border)
-        self.K = self._geometry.adjust_K(K_native)
-        self.width, self.height = self._geometry.out_size
-        dist = self.options.distortion
-        self._undistort = (Undistorter(K_native, dist) if self.options.undistort and dist is not None
-                           and np.any(np.asarray(dist) != 0) else None)
+    def _size_mismatch(self, size: tuple[int, int], expected: tuple[int, int]) -> str:
+        return (f"{self.root}: depth topic {self._depth.topic} has {size[0]}x{size[1]} images but CameraInfo topic "
+                f"{self._info_topic} states {expected[0]}x{expected[1]}")
 
     # ------------------------------------------------------------------------------------------ index
     def _scan(self) -> SourceIndex:
-        """Choose the topics, index their messages once and pair colour with depth by header stamp."""
+        """Open the bag, choose the topics, index their messages once and pair colour with depth by header stamp."""
         root = self.root
+        self._bag = BagFile(root)
         rgb_topic, depth_topic = self._image_topics()
         self._rgb = self._stream(rgb_topic, "rgb_topic")
         self._depth = self._stream(depth_topic, "depth_topic")
-        t_rgb, t_depth = self._rgb.stamps, self._depth.stamps
-        pairs = associate(t_rgb, t_depth, MAX_DIFFERENCE)
-        if len(pairs) == 0:
-            raise DatasetError(f"{root}: no colour/depth pair within {MAX_DIFFERENCE} s ({rgb_topic}: {len(t_rgb)} "
-                               f"stamps {t_rgb.min():.3f}..{t_rgb.max():.3f}, {depth_topic}: {len(t_depth)} stamps "
-                               f"{t_depth.min():.3f}..{t_depth.max():.3f})")
-        dropped = len(t_rgb) - len(pairs)
-        if dropped:
-            (log.warning if dropped > 0.05 * len(t_rgb) else log.info)(
-                "%s: %d of %d colour images of %s have no depth image within %.2f s and are skipped",
-                root, dropped, len(t_rgb), rgb_topic, MAX_DIFFERENCE)
-        self._pairs = pairs
+        t_rgb = self._rgb.stamps
+        pairs = pair_colour_depth(t_rgb, self._depth.stamps, root, rgb_topic, depth_topic, log, pair="colour/depth",
+                                  images=f"colour images of {rgb_topic}")
+        self._pairs = pairs  # (rgb message, depth message) of every frame of the SourceIndex
         K, depth_scale, size = self._camera()
         return SourceIndex(timestamps=t_rgb[pairs[:, 0]],
                            rgb_paths=[Path(f"{root}:{rgb_topic}[{i}]") for i in pairs[:, 0]],
@@ -205,7 +166,7 @@ class RosbagReader(Sequence):
         """``(K (3, 3) native, depth scale, (width, height) the camera states or None)``."""
         scale = DEPTH_ENCODINGS[self._depth.encoding][1]
         self._info_topic = None
-        if self.options.fx is not None:  # __init__ applies the override
+        if self.options.fx is not None:  # the base class applies the override
             return self.options.intrinsics_override(), scale, None
         topic = self._info_topic = self._camera_info_topic()
         if topic is not None:
@@ -242,31 +203,14 @@ class RosbagReader(Sequence):
         return self._only(infos, "CameraInfo topic", "camera_info_topic")
 
     # --------------------------------------------------------------------------------------- frames
-    def __getitem__(self, i: int) -> Frame:
-        """Read and decode frame ``i`` of the selection: rgb (H, W, 3) uint8, depth (H, W) float32 metres
-        (0 = invalid), K (3, 3); ``T_w_c_gt`` is None (a bag has no ground truth)."""
-        n = len(self)
-        i = operator.index(i)
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError(f"frame index {i} out of range for a sequence of {n} frames")
-        rgb_msg = self._message(self._rgb, int(self._rgb_idx[i]))
-        depth_msg = self._message(self._depth, int(self._depth_idx[i]))
+    def _load_frame(self, i: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Read and decode the two messages of frame ``i`` of the selection."""
+        k_rgb, k_depth = self._pairs[self._selection[i]]
+        rgb_msg = self._message(self._rgb, int(k_rgb))
+        depth_msg = self._message(self._depth, int(k_depth))
         rgb = decode_color(rgb_msg, str(self._rgb_paths[i]))
         depth, n_nonfinite = self._metres(decode_depth(depth_msg, str(self._depth_paths[i])), i, depth_msg.encoding)
-        rgb = self._check_sizes(i, rgb, depth)
-        if self._undistort is not None:
-            rgb = self._undistort(rgb)
-        rgb, depth = self._geometry.color(rgb), self._geometry.depth(depth)
-        if n_nonfinite:
-            self._warn_once("nonfinite", "%s: %d NaN/inf depth pixels set to 0 (invalid); further such frames "
-                            "are not reported", self._depth_paths[i], n_nonfinite)
-        if not np.any(depth > 0):
-            self._warn_once("zero", "%s: depth has no valid pixel (all zero); further such frames are not "
-                            "reported", self._depth_paths[i])
-        return Frame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
-                     T_w_c_gt=None)
+        return rgb, depth, n_nonfinite
 
     def _message(self, stream: ImageStream, k: int):
         return self._bag.fetch(stream.topic, int(stream.record_ns[k]), int(stream.rank[k]))

@@ -22,7 +22,7 @@ import numpy as np
 
 from lrslam.errors import DatasetError
 from lrslam.datasets.base import Sequence, SourceIndex
-from lrslam.datasets.parsing import numbered_files, read_matrix, read_pose_files
+from lrslam.datasets.parsing import numbered_files, paired_frame_numbers, read_matrix, read_pose_files
 from lrslam.datasets.registry import register
 from lrslam.datasets.replica import NOMINAL_FPS
 
@@ -48,14 +48,7 @@ class ScanNetReader(Sequence):
         root = self.root
         colors = numbered_files(root / "color", r"(\d+)\.(?:jpg|jpeg|png)")
         depths = numbered_files(root / "depth", r"(\d+)\.png")
-        idx = sorted(colors)
-        missing = [i for i in idx if i not in depths]
-        if missing:
-            raise DatasetError(f"{root / 'depth' / f'{missing[0]}.png'}: image file not found ({len(missing)} of "
-                               f"{len(idx)} colour frames have no depth image)")
-        if len(depths) > len(idx):
-            log.warning("%s: %d depth images have no colour image and are ignored", root / "depth",
-                        len(depths) - len(idx))
+        idx = paired_frame_numbers(colors, depths, lambda n: root / "depth" / f"{n}.png", root / "depth", log)
         poses = None
         if (root / "pose").is_dir() and idx:
             poses = read_pose_files([root / "pose" / f"{i}.txt" for i in idx])

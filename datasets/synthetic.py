@@ -16,12 +16,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, PositiveFloat, PositiveInt, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, PositiveFloat, PositiveInt, field_validator
 
 from lrslam.camera import intrinsics_matrix
-from lrslam.config import load_yaml
-from lrslam.errors import DatasetError, InputError
 from lrslam.datasets.base import SourceIndex
+from lrslam.datasets.parsing import read_yaml_model
 from lrslam.datasets.registry import register
 from lrslam.datasets.tum import TumReader
 
@@ -60,16 +59,7 @@ class SceneInfo(BaseModel):
 
 def load_scene_info(path: Path) -> SceneInfo:
     """Parse ``scene.yaml``; DatasetError naming the file and the first problem."""
-    try:
-        data = load_yaml(path)
-    except InputError as e:  # load_yaml's messages name the file
-        raise DatasetError(str(e)) from None
-    try:
-        return SceneInfo.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        where = ".".join(str(x) for x in err["loc"]) or "scene"
-        raise DatasetError(f"{path}: {where}: {err['msg']}") from None
+    return read_yaml_model(path, SceneInfo, "scene")
 
 
 @register("synthetic")

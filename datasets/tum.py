@@ -34,7 +34,7 @@ import numpy as np
 
 from lrslam.camera import intrinsics_matrix
 from lrslam.errors import DatasetError
-from lrslam.datasets.association import MAX_DIFFERENCE, associate, interpolate_poses
+from lrslam.datasets.association import MAX_DIFFERENCE, interpolate_poses, pair_colour_depth
 from lrslam.datasets.base import Sequence, SourceIndex
 from lrslam.datasets.camera_file import CAMERA_FILE, read_camera_file
 from lrslam.datasets.parsing import read_file_list
@@ -104,16 +104,7 @@ class TumReader(Sequence):
         if len(t_rgb) == 0 or len(t_depth) == 0:
             raise DatasetError(f"{root}: empty sequence (rgb.txt lists {len(t_rgb)} images, depth.txt "
                                f"{len(t_depth)})")
-        pairs = associate(t_rgb, t_depth, MAX_DIFFERENCE)
-        if len(pairs) == 0:
-            raise DatasetError(f"{root}: no rgb/depth pair within {MAX_DIFFERENCE} s (rgb.txt: {len(t_rgb)} stamps "
-                               f"{t_rgb.min():.3f}..{t_rgb.max():.3f}, depth.txt: {len(t_depth)} stamps "
-                               f"{t_depth.min():.3f}..{t_depth.max():.3f})")
-        dropped = len(t_rgb) - len(pairs)
-        if dropped:
-            (log.warning if dropped > 0.05 * len(t_rgb) else log.info)(
-                "%s: %d of %d colour images have no depth image within %.2f s and are skipped",
-                root, dropped, len(t_rgb), MAX_DIFFERENCE)
+        pairs = pair_colour_depth(t_rgb, t_depth, root, "rgb.txt", "depth.txt", log)
         timestamps = t_rgb[pairs[:, 0]]
         rgb_paths = [root / rgb_names[i] for i in pairs[:, 0]]
         depth_paths = [root / depth_names[j] for j in pairs[:, 1]]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import colorsys
 import logging
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -188,48 +189,53 @@ class _Layout:
     def _xy(self) -> np.ndarray:
         return self.rng.uniform(self.room[:2, 0], self.room[:2, 1])
 
-    def box(self, low: bool) -> Primitive | None:
+    def _place(self, kind: str, draw: Callable[[], tuple[dict[str, Any], np.ndarray, Primitive | None]]
+               ) -> Primitive | None:
+        """Up to 300 draws ``(params, aabb, the placed primitive it may touch or None)``; the first that fits is
+        placed and returned; None when none fits."""
         for _ in range(300):
+            params, aabb, support = draw()
+            if self.fits(aabb, ignore=support):
+                p = Primitive(kind, params, aabb)
+                self.placed.append(p)
+                return p
+        return None
+
+    def box(self, low: bool) -> Primitive | None:
+        def draw() -> tuple[dict[str, Any], np.ndarray, None]:
             h = self.rng.uniform(0.2, 0.45) if low else self.rng.uniform(0.4, min(1.9, self.size[2] - 0.3))
             half = np.array([self.rng.uniform(0.15, 0.6), self.rng.uniform(0.12, 0.35), h / 2])
             yaw = self.rng.uniform(-0.3, 0.3) + self.rng.integers(0, 4) * np.pi / 2
             R = _rot_z(yaw)
             centre = np.append(self._xy(), h / 2)
             ext = np.abs(R) @ half
-            aabb = np.stack([centre - ext, centre + ext], axis=1)
-            if self.fits(aabb):
-                p = Primitive("box", {"centre": centre, "half": half, "yaw": yaw}, aabb)
-                self.placed.append(p)
-                return p
-        return None
+            return {"centre": centre, "half": half, "yaw": yaw}, np.stack([centre - ext, centre + ext], axis=1), None
+
+        return self._place("box", draw)
 
     def cylinder(self, low: bool) -> Primitive | None:
-        for _ in range(300):
+        def draw() -> tuple[dict[str, Any], np.ndarray, None]:
             r = self.rng.uniform(0.08, 0.25)
             h = self.rng.uniform(0.25, 0.45) if low else self.rng.uniform(0.5, min(1.8, self.size[2] - 0.3))
             base = np.append(self._xy(), 0.0)
             aabb = np.stack([base - [r, r, 0], base + [r, r, h]], axis=1)
-            if self.fits(aabb):
-                p = Primitive("cylinder", {"base": base, "radius": r, "height": h}, aabb)
-                self.placed.append(p)
-                return p
-        return None
+            return {"base": base, "radius": r, "height": h}, aabb, None
+
+        return self._place("cylinder", draw)
 
     def sphere(self, on_box: bool) -> Primitive | None:
         boxes = [p for p in self.placed if p.kind == "box"]
-        for _ in range(300):
+
+        def draw() -> tuple[dict[str, Any], np.ndarray, Primitive | None]:
             r = self.rng.uniform(0.08, 0.2)
             support = boxes[self.rng.integers(len(boxes))] if on_box and boxes else None
             if support is not None:
                 centre = np.append(support.params["centre"][:2], 2 * support.params["half"][2] + r)
             else:
                 centre = np.append(self._xy(), r)
-            aabb = np.stack([centre - r, centre + r], axis=1)
-            if self.fits(aabb, ignore=support):
-                p = Primitive("sphere", {"centre": centre, "radius": r}, aabb)
-                self.placed.append(p)
-                return p
-        return None
+            return {"centre": centre, "radius": r}, np.stack([centre - r, centre + r], axis=1), support
+
+        return self._place("sphere", draw)
 
 
 def _texture(rng: np.random.Generator, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
