@@ -9,11 +9,25 @@ import numpy as np
 
 from lrslam.errors import InputError
 
-__all__ = ["Frame"]
+__all__ = ["Frame", "DepthSized"]
+
+
+class DepthSized:
+    """``height`` and ``width`` in pixels of an RGB-D pair, read off its ``depth`` image (H, W)."""
+
+    depth: np.ndarray
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
 
 
 @dataclass
-class Frame:
+class Frame(DepthSized):
     """One RGB-D frame.
 
     Attributes:
@@ -32,14 +46,6 @@ class Frame:
     depth: np.ndarray
     K: np.ndarray
     T_w_c_gt: np.ndarray | None = None
-
-    @property
-    def height(self) -> int:
-        return int(self.depth.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.depth.shape[1])
 
     def valid_depth_fraction(self) -> float:
         """Fraction of pixels with a positive depth."""

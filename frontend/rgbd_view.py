@@ -20,6 +20,7 @@ import numpy as np
 
 from lrslam.camera import backproject_depth, block_intrinsics, project_points, strided_intrinsics, transform_points
 from lrslam.errors import InputError
+from lrslam.frame import DepthSized
 from lrslam.geometry import hat
 
 __all__ = [
@@ -38,7 +39,7 @@ class FrameLike(Protocol):
 
 
 @dataclass
-class RGBDView:
+class RGBDView(DepthSized):
     """One RGB-D image pair for registration.
 
     Attributes:
@@ -53,14 +54,6 @@ class RGBDView:
     depth: np.ndarray
     K: np.ndarray
     cache: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
-
-    @property
-    def height(self) -> int:
-        return int(self.depth.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.depth.shape[1])
 
     def cached(self, key: Any, build) -> Any:
         """``cache[key]``, built with ``build()`` on first use."""

@@ -10,19 +10,14 @@ import pytest
 from lrslam.pipeline.config import build_config
 from lrslam.trajectory_io import read_tum
 
-# tiny and fast: these tests check plumbing, not accuracy (accuracy has its own tests and benchmarks)
-TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_iters=30",
-        "field.tracking.n_rays=256", "field.mapping.n_rays=512", "field.mesh.resolution=0.1",
-        "output.eval_mesh_points=5000"]
+from run_fixtures import TINY as _TINY, fail_at_frame, synthetic_room
+
+TINY = _TINY + ["field.mesh.resolution=0.1", "output.eval_mesh_points=5000"]
 
 
 @pytest.fixture(scope="module")
 def tiny_sequence(tmp_path_factory):
-    from lrslam.datasets.synth.writer import generate
-
-    out = tmp_path_factory.mktemp("seq") / "room"
-    generate(out, scene="room", trajectory="loop", n_frames=12, seed=1, width=160, height=120, show_progress=False)
-    return out
+    return synthetic_room(tmp_path_factory.mktemp("seq") / "room", n_frames=12, seed=1)
 
 
 @pytest.mark.parametrize("mode", ["field", "frontend", "fused"])
@@ -79,16 +74,8 @@ def test_unknown_config_key_is_rejected():
 
 def test_a_crash_mid_run_keeps_the_poses_tracked_so_far(tiny_sequence, tmp_path, monkeypatch):
     from lrslam.pipeline.run import run_sequence
-    from lrslam.pipeline.runner import SlamRunner
 
-    real_step = SlamRunner.step
-
-    def failing_step(self, frame):
-        if frame.index == 5:
-            raise RuntimeError("simulated failure")
-        return real_step(self, frame)
-
-    monkeypatch.setattr(SlamRunner, "step", failing_step)
+    fail_at_frame(monkeypatch, 5, "simulated failure")
     cfg = build_config("synthetic", overrides=TINY, mode="frontend")
     with pytest.raises(RuntimeError, match="simulated"):
         run_sequence(tiny_sequence, cfg, tmp_path / "crash", progress=False)

@@ -22,16 +22,14 @@ from lrslam.errors import InputError
 from lrslam.pipeline.config import build_config
 from lrslam.trajectory_io import read_tum
 
-TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_iters=30",
-        "field.tracking.n_rays=256", "field.mapping.n_rays=512", "output.mesh=false", "output.plots=false"]
+from run_fixtures import TINY as _TINY, fail_at_frame, synthetic_room
+
+TINY = _TINY + ["output.mesh=false", "output.plots=false"]
 
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
-    from lrslam.datasets.synth.writer import generate
-
-    return generate(tmp_path_factory.mktemp("resume") / "room", scene="room", trajectory="loop", n_frames=16,
-                    seed=1, width=160, height=120, show_progress=False)
+    return synthetic_room(tmp_path_factory.mktemp("resume") / "room", n_frames=16, seed=1)
 
 
 def assert_same(a, b, where: str = "state") -> None:
@@ -268,18 +266,10 @@ FRONTEND = ["--config", "synthetic", "--mode", "frontend", "--seed", "2", "--det
 def crashed_run(seq_dir, tmp_path, monkeypatch):
     """A frontend run (checkpoint at every keyframe) that crashed at frame 11: its folder and its checkpoint."""
     from lrslam.cli import main
-    from lrslam.pipeline.runner import SlamRunner
-
-    real_step = SlamRunner.step
-
-    def failing_step(self, frame):
-        if frame.index == 11:
-            raise RuntimeError("simulated crash")
-        return real_step(self, frame)
 
     out = tmp_path / "run"
     with monkeypatch.context() as m:
-        m.setattr(SlamRunner, "step", failing_step)
+        fail_at_frame(m, 11, "simulated crash")
         with pytest.raises(RuntimeError, match="simulated"):
             main(["--debug", "run", str(seq_dir), "--out", str(out), *FRONTEND])
     assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()

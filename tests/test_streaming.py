@@ -11,17 +11,14 @@ import pytest
 from lrslam.errors import InputError
 from lrslam.pipeline.config import build_config
 from lrslam.trajectory_io import read_tum, write_tum
+from run_fixtures import TINY as _TINY, synthetic_room
 
-TINY = ["field.tracking.iters=3", "field.mapping.iters=3", "field.mapping.first_iters=30",
-        "field.tracking.n_rays=256", "field.mapping.n_rays=512", "output.mesh=false", "output.plots=false"]
+TINY = _TINY + ["output.mesh=false", "output.plots=false"]
 
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
-    from lrslam.datasets.synth.writer import generate
-
-    return generate(tmp_path_factory.mktemp("stream") / "room", scene="room", trajectory="loop", n_frames=12,
-                    seed=3, width=160, height=120, show_progress=False)
+    return synthetic_room(tmp_path_factory.mktemp("stream") / "room", n_frames=12, seed=3)
 
 
 def _slam(cfg, seq, first):
