@@ -72,13 +72,15 @@ class Correction:
     ``poses``: the keyframes to overwrite, ``{kf: T_w_kf}`` (only those the solve moved by more than the write
     threshold; empty when it did not solve); ``remap``: keyframe ids to re-map the field over, most-moved first;
     ``shifts``: ``{kf: (metres, degrees)}`` of each keyframe in ``poses``; ``loops``: verified loop closures
-    added; ``solved``: whether the graph was solved."""
+    added; ``solved``: whether the graph was solved; ``edges``: the loops added, as ``(i, j)`` keyframe ids
+    (``j`` the new keyframe)."""
 
     poses: dict[int, np.ndarray] = dc_field(default_factory=dict)
     remap: tuple[int, ...] = ()
     shifts: dict[int, tuple[float, float]] = dc_field(default_factory=dict)
     loops: int = 0
     solved: bool = False
+    edges: tuple[tuple[int, int], ...] = ()
 
 
 class GraphBackend:
@@ -136,9 +138,10 @@ class GraphBackend:
         if len(loops) > len(real):
             log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", frame.index,
                      len(loops) - len(real))
+        edges = tuple((lc.i, lc.j) for lc in loops)
         if not (real or self.cfg.optimise == "every_keyframe"):
-            return Correction(loops=len(loops))
-        return self._solve(poses, len(loops))
+            return Correction(loops=len(loops), edges=edges)
+        return self._solve(poses, edges)
 
     def _add_factors(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> list:
         """Steps 1-3: the new keyframe's field, frontend and loop factors; returns the loops kept."""
@@ -163,7 +166,7 @@ class GraphBackend:
         self.n_loops += len(loops)
         return loops
 
-    def _solve(self, poses: dict[int, np.ndarray], n_loops: int) -> Correction:
+    def _solve(self, poses: dict[int, np.ndarray], edges: tuple[tuple[int, int], ...]) -> Correction:
         """Step 4: solve from the trajectory's poses, field factors re-stated from them (the graph never reverts
         the mapper's refinements: only loops and the frontend's measurements move poses); then which keyframes
         to write (moved more than ``write_min_shift_*``) and to re-map (the most-moved, beyond
@@ -181,7 +184,7 @@ class GraphBackend:
             if d_t > c.write_min_shift_m or d_r > c.write_min_shift_deg:
                 written[k], shifts[k] = T, (d_t, d_r)
         big = [k for k, (d_t, _) in sorted(shifts.items(), key=lambda kv: -kv[1][0]) if d_t > c.remap_min_shift_m]
-        return Correction(written, tuple(big[: c.remap_keyframes]), shifts, n_loops, True)
+        return Correction(written, tuple(big[: c.remap_keyframes]), shifts, len(edges), True, edges)
 
     def _is_correction(self, lc: LoopConstraint) -> bool:
         return lc.correction_m > self.cfg.loop_min_correction_m or lc.correction_deg > self.cfg.loop_min_correction_deg

@@ -14,13 +14,15 @@ at the end is given in seconds, not per frame; with ``schedule.background_mappin
 mode, ``map`` is the time the tracking thread waited for the mapper), tracking iterations used per frame (mean),
 first-third and last-third s/frame and their ratio, peak RSS, ATE RMSE. ``--paired`` adds the CP-SA (LRSLAM) /
 tri-plane (ESLAM) ratio of whole-run s/frame measured in one process: two runners on the same frames in lockstep,
-frame by frame, so both see the same machine speed (``--paired-frames`` frames, field mode).
+frame by frame, so both see the same machine speed (``--paired-frames`` frames, field mode). ``--rrd DIR`` runs each
+(sequence, mode) a second time right after the first, with the live viewer recording to ``DIR/<sequence>-<mode>.rrd``
+(``lrslam run --rrd``), and prints the viewer's cost: s/frame without and with it, side by side.
 
 Usage::
 
     python benchmarks/fps.py [--sequences synthetic,tum,7scenes] [--modes field,frontend,fused] [--frames 300]
                              [--threads 2] [--device cpu|cuda] [--set key=value ...] [--paired]
-                             [--paired-frames 60] [--out runs/bench_fps]
+                             [--paired-frames 60] [--rrd DIR] [--out runs/bench_fps]
 
 ``--device cuda`` runs the GPU-sized presets (``tum``, ``7scenes``; the synthetic preset with ``field.device=cuda``)
 and, with ``--paired``, reports the paper settings' CP-SA vs tri-plane s/frame side by side.
@@ -64,10 +66,11 @@ def sequence_path(name: str, frames: int, out: Path) -> Path | None:
 
 
 def run_one(seq: Path, preset: str, mode: str, stride: int, threads: int, overrides: list[str],
-            out: Path) -> dict:
-    """One ``lrslam run`` in its own process -> its metrics.json plus ``peak_rss_mb`` and ``process_s``."""
+            out: Path, rrd: Path | None = None) -> dict:
+    """One ``lrslam run`` in its own process -> its metrics.json plus ``peak_rss_mb`` and ``process_s``
+    (``rrd``: with the live viewer recording to that file)."""
     cmd = [sys.executable, "-m", "lrslam", "run", str(seq), "-c", preset, "--mode", mode, "--out", str(out),
-           "--threads", str(threads), "-q", "--overwrite"]
+           "--threads", str(threads), "-q", "--overwrite"] + (["--rrd", str(rrd)] if rrd is not None else [])
     for o in overrides + ([f"dataset.options.stride={stride}"] if stride > 1 else []):
         cmd += ["--set", o]
     t0 = time.perf_counter()
@@ -107,6 +110,20 @@ def table(title: str, rows: dict[str, dict]) -> str:
             _f(m.get("peak_rss_mb"), "{:.0f}"), _f(m.get("ate_rmse_cm"), "{:.2f}"), str(m.get("n_keyframes", "-")),
             str(m.get("n_loop_closures", "-")), str(m.get("n_graph_solves", "-")), str(m.get("n_remaps", "-"))]) + " |")
     return "\n".join(lines + [""])
+
+
+def viewer_cost(rows: dict[str, dict]) -> list[str]:
+    """One line per mode run with and without the viewer: s/frame side by side and the difference."""
+    lines = []
+    for mode, m in rows.items():
+        v = rows.get(f"{mode}+viewer")
+        if mode.endswith("+viewer") or v is None or "fpt_s" not in m or "fpt_s" not in v:
+            continue
+        a, b = m["fpt_s"], v["fpt_s"]
+        size = f", recording {v['rrd_mb']:.1f} MB" if "rrd_mb" in v else ""
+        lines.append(f"- {mode}: {a:.3f} s/frame without the viewer, {b:.3f} with it ({100 * (b - a) / a:+.1f} %)"
+                     f"{size}")
+    return lines
 
 
 def paired_ratio(seq: Path, preset: str, stride: int, frames: int, overrides: list[str]) -> dict:
@@ -155,6 +172,8 @@ def main() -> int:
     ap.add_argument("--paired", action="store_true", help="add the CP-SA / tri-plane paired whole-run ratio")
     ap.add_argument("--paired-frames", type=int, default=60)
     ap.add_argument("--paired-only", action="store_true", help="only the paired ratio")
+    ap.add_argument("--rrd", type=Path, default=None, metavar="DIR",
+                    help="run each mode again with the live viewer recording to DIR/<sequence>-<mode>.rrd")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_fps"))
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
@@ -171,8 +190,18 @@ def main() -> int:
             for mode in a.modes.split(","):
                 print(f"{name} {mode} ...", flush=True)
                 rows[mode] = run_one(seq, preset, mode, stride, a.threads, overrides, a.out / f"{name}-{mode}")
+                if a.rrd is not None:
+                    print(f"{name} {mode} with the viewer ...", flush=True)
+                    rrd = a.rrd / f"{name}-{mode}.rrd"
+                    rows[f"{mode}+viewer"] = m = run_one(seq, preset, mode, stride, a.threads, overrides,
+                                                         a.out / f"{name}-{mode}-viewer", rrd)
+                    if rrd.is_file():
+                        m["rrd_mb"] = rrd.stat().st_size / 1e6
             frames = next((m.get("n_frames") for m in rows.values() if "n_frames" in m), "?")
             texts.append(table(f"{name} ({preset}, {frames} frames, {a.threads} threads, {a.device})", rows))
+            if a.rrd is not None:
+                texts[-1] += "\nViewer cost (lrslam run --rrd, measured right after the run without it):\n\n" + \
+                    "\n".join(viewer_cost(rows)) + "\n"
             print(texts[-1], flush=True)
         if a.paired:
             import torch

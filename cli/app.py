@@ -1,4 +1,4 @@
-"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``batch``, ``report``, ``params``.
+"""The ``lrslam`` command line: ``synth``, ``eval ate|mesh``, ``run``, ``view``, ``batch``, ``report``, ``params``.
 
 Each command's body lives next to the code it drives (``*/cli.py`` modules); heavy libraries (torch, open3d,
 gtsam) are imported inside the command functions so ``lrslam --help`` stays fast.
@@ -53,10 +53,12 @@ def _register() -> None:
     from lrslam.cli.synth import synth
     from lrslam.cli.commands import batch, params, report, run
     from lrslam.cli.evaluate import eval_app
+    from lrslam.cli.view import view
 
     app.command("synth")(synth)
     app.add_typer(eval_app, name="eval")
     app.command("run")(run)
+    app.command("view")(view)
     app.command("params")(params)
     app.command("batch")(batch)
     app.command("report")(report)

@@ -85,12 +85,17 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads for torch, numba and "
                                           "OpenMP (default: the libraries' own choice, all cores)."),
+    viewer: bool = typer.Option(False, "--viewer", help="Draw the run live in a Rerun viewer (spawned; needs "
+                                "pip install 'lrslam[viewer]')."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the live view to this .rrd file (headless "
+                                       "machines, CI; open it with `rerun FILE`)."),
 ) -> None:
     """Run SLAM on a sequence and write trajectory, keyframes, mesh, plots, metrics and config to OUT.
 
     Exit code 0: ok; 2: bad input; 3: the run finished but is degraded (see metrics.json "degraded_reasons").
     ``--set bound=auto`` estimates the scene bound with a fast odometry pre-pass over the sequence.
     ``--resume`` continues a killed run from OUT/checkpoint.pt: give the same sequence and options as the run.
+    ``--viewer`` / ``--rrd FILE`` draw the run in Rerun as it goes (``lrslam view OUT`` replays it afterwards).
     """
     from lrslam.pipeline.config_source import default_preset, load_run_config
     from lrslam.pipeline.run import run_sequence
@@ -127,12 +132,26 @@ def run(
             generate(path, noise=_demo_noise(), show_progress=not quiet, **DEMO_SYNTH)
     if path is None:
         raise InputError("give a sequence folder, or --demo for the built-in synthetic sequence")
-    res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets,
-                       resume=resume)
+    live = _open_viewer(viewer, rrd)
+    try:
+        res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets,
+                           resume=resume, viewer=live)
+    finally:   # flushed and closed also on an error or Ctrl-C: the recording keeps the frames drawn so far
+        if live is not None:
+            live.close()
     for line in _summary_lines(res.metrics, Path(out)):
         typer.echo(line)
     if res.metrics.get("status") == "degraded":
         raise typer.Exit(3)
+
+
+def _open_viewer(spawn: bool, rrd: Path | None):
+    """The live viewer of ``lrslam run`` (None without ``--viewer`` / ``--rrd``); InputError without rerun-sdk."""
+    if not spawn and rrd is None:
+        return None
+    from lrslam.pipeline.viewer import RerunViewer
+
+    return RerunViewer(spawn=spawn, rrd=rrd)
 
 
 def _demo_noise():

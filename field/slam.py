@@ -16,7 +16,7 @@ import torch
 
 from lrslam.field.background import BackgroundMapping
 from lrslam.field.config import FieldSLAMConfig
-from lrslam.camera import check_intrinsics
+from lrslam.camera import check_intrinsics, strided_intrinsics
 from lrslam.errors import InputError
 from lrslam.geometry import checked_pose
 from lrslam.field.grid import check_bound
@@ -170,6 +170,25 @@ class FieldSLAM:
         views = [self.mapper.keyframes.get(k) for k in ids]
         poses = [np.asarray(keyframe_poses[k], dtype=np.float64) for k in ids]
         return extract_mesh(self.model, views, poses, self.K, self.height, self.cfg.mesh, resolution)
+
+    def render(self, T_w_c: np.ndarray, scale: int = 4,
+               depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The field seen from ``T_w_c`` (4, 4) at the pixels of ``image[::scale, ::scale]`` ((h, w) = ceil of
+        (H, W) / scale; :func:`lrslam.camera.strided_intrinsics`): depth (h, w) float32 metres (0 where the rays
+        hit nothing) and colour (h, w, 3) float32 in [0, 1] (Eq. volume_render, no jitter). ``depth``: the
+        frame's (H, W) metres, 0 = invalid; strided alike, it guides the samples as in tracking (hierarchical
+        sampling where it is 0 or None). Reads the field only (with background mapping, the tracking copy: never
+        waits for a mapping round)."""
+        from lrslam.field.render import render_image
+
+        self._require_init()
+        s = max(int(scale), 1)
+        h, w = -(-self.height // s), -(-self.width // s)
+        guide = None if depth is None else np.asarray(depth, dtype=np.float32)[::s, ::s]
+        model, _ = self._tracking_model()
+        with model.frozen():
+            return render_image(model, strided_intrinsics(self.K, s), self._pose(T_w_c), h, w, model.truncation,
+                                self.cfg.render, guide)
 
     def depth_error(self, keyframe_poses: dict[int, np.ndarray], keyframe_ids: list[int] | None = None,
                     n_rays: int = 2000) -> float:

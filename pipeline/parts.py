@@ -269,6 +269,12 @@ class FieldMapper:
     def mesh(self, keyframe_poses: dict, resolution: float | None):
         return self.field.extract_mesh(keyframe_poses, resolution)
 
+    def render(self, T_w_c: np.ndarray, scale: int = 4,
+               depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (h, w) metres and colour (h, w, 3) in [0, 1] of the field at ``T_w_c``, at the pixels of
+        ``image[::scale, ::scale]`` (:meth:`lrslam.field.slam.FieldSLAM.render`)."""
+        return self.field.render(T_w_c, scale, depth)
+
 
 # -------------------------------------------------------------------------------------------------- factory
 @dataclass

@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from lrslam.pipeline.run_folder import PartialTrajectory, prepare_run_folder
 from lrslam.pipeline.sanity import run_status
 from lrslam.pipeline.slam import FrameResult, Slam
 from lrslam.pipeline.timing import StageTimer
+
+if TYPE_CHECKING:
+    from lrslam.pipeline.viewer import RerunViewer
 
 __all__ = ["run_sequence", "RunResult", "choose_bound"]
 
@@ -177,15 +181,18 @@ def _initial_pose(cfg: RunConfig, first) -> np.ndarray:
     return np.eye(4)
 
 
-def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False) -> _Progress:
-    """A new run: choose the bound, start the Slam (it seeds every RNG) on the first frame."""
+def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False,
+             viewer: RerunViewer | None = None) -> _Progress:
+    """A new run: choose the bound, start the Slam (it seeds every RNG; ``viewer`` watches it) on the first
+    frame."""
     T0 = _initial_pose(cfg, first)
     bound, bound_src = choose_bound(cfg, seq, first, T0)
     log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s, seed %d", path, len(seq), seq.name,
              np.round(bound, 3).tolist(), bound_src, cfg.mode, cfg.seed)
     t_start = time.perf_counter()
     with _first_fit_bar(cfg, progress) as on_fit:
-        slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit)
+        slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit,
+                    observers=[viewer] if viewer is not None else [])
         slam.track(first.rgb, first.depth, first.timestamp)
     coverage = BoundCoverage(bound) if cfg.parts.refiner == "field" else None
     return _Progress(slam, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
@@ -241,7 +248,7 @@ def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialT
 
 def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True, *,
                  overwrite: bool = False, presets: dict[str, str | None] | None = None,
-                 resume: bool = False) -> RunResult:
+                 resume: bool = False, viewer: RerunViewer | None = None) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
     ``out_dir`` must be new, empty or an earlier run folder (any non-empty folder with ``overwrite``); its old
@@ -249,7 +256,8 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     ``checkpoint.pt`` every ``output.checkpoint_every`` keyframes; ``bound: auto`` estimates the scene bound
     with an odometry pre-pass). ``resume``: continue the run in ``out_dir`` from its checkpoint instead (same
     config and sequence, else InputError; ``run.log`` is appended to). ``presets``: the preset names the config
-    came from, for the provenance record.
+    came from, for the provenance record. ``viewer``: draws the run as it goes (it gets the sequence's ground truth
+    for its running ATE; the caller closes it).
 
     Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
     ``metrics.json``, with ``status`` "ok" or "degraded").
@@ -263,13 +271,14 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     handler = _attach_file_log(out_dir, append=resume)
     try:
         with open3d_threads(cfg.deterministic):   # one thread: Open3D repeats bit for bit
-            return _run_in_folder(path, cfg, out_dir, saved, presets, progress)
+            return _run_in_folder(path, cfg, out_dir, saved, presets, progress, viewer)
     finally:
         logging.getLogger("lrslam").removeHandler(handler)
         handler.close()
 
 
-def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, presets, progress: bool) -> RunResult:
+def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, presets, progress: bool,
+                   viewer: RerunViewer | None = None) -> RunResult:
     """1. open the sequence and record the config; 2. start (or resume) the run; 3. every frame; 4. outputs."""
     seq = _open(path, cfg)
     record = _config_record(cfg, seq, provenance(path, seq.name, presets))
@@ -282,10 +291,14 @@ def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, pres
     first = seq[0]
     first.require_depth(seq.depth_path(0))
     timer = StageTimer()
+    if viewer is not None:
+        viewer.set_ground_truth(_viewer_ground_truth(seq))
     if saved is not None:
         run = _resumed_run(cfg, first, timer, saved)
+        if viewer is not None:
+            run.slam.add_observer(viewer)
     else:
-        run = _new_run(path, cfg, seq, first, timer, progress)
+        run = _new_run(path, cfg, seq, first, timer, progress, viewer)
     partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
     checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
     _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps), out_dir,
@@ -296,6 +309,18 @@ def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, pres
     partial.remove()
     checkpoints.remove()
     return RunResult(out_dir, metrics, result.timestamps, result.poses)
+
+
+def _viewer_ground_truth(seq) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ground truth the run is evaluated against, for the viewer's running ATE (None without, or unreadable:
+    the evaluation at the end reports why)."""
+    from lrslam.evaluation.ate import ground_truth_samples
+
+    try:
+        return ground_truth_samples(seq)
+    except InputError as e:
+        log.warning("viewer: no ground truth (%s)", e)
+        return None
 
 
 def _write_results(out_dir: Path, cfg: RunConfig, seq, result, timer: StageTimer, wall: float, run: _Progress,

@@ -51,6 +51,9 @@ class FrameRecord:
     solved: bool = False
     remapped: bool = False
     notes: list[str] = dc_field(default_factory=list)
+    loop_edges: list[tuple[int, int]] = dc_field(default_factory=list)   # (i, j) keyframe ids of the loops added
+    moved: dict[int, tuple[float, float]] = dc_field(default_factory=dict)  # {kf: (m, deg)} the graph moved
+    moved_from: dict[int, tuple[float, float, float]] = dc_field(default_factory=dict)  # {kf: xyz (m) before}
 
 
 @dataclass(frozen=True)
@@ -189,8 +192,11 @@ class SlamRunner:
         with self.timer("graph"):
             corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information)
         rec.loops, rec.solved = corr.loops, corr.solved
+        rec.loop_edges = [(int(i), int(j)) for i, j in corr.edges]
         if not corr.solved:
             return
+        rec.moved = {int(k): (float(m), float(d)) for k, (m, d) in corr.shifts.items()}
+        rec.moved_from = {int(k): tuple(float(x) for x in self.traj.pose(k)[:3, 3]) for k in corr.poses}
         self.traj.apply_corrections(corr.poses)
         if corr.remap and p.mapper is not None:
             with self.timer("remap"):
@@ -207,6 +213,11 @@ class SlamRunner:
             self._frontend.append(frontend)
         self._records.append(rec)
         return rec
+
+    def last_seed(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """The last frame's seed ``T_w_c`` (4, 4) and the frontend's own pose of it (None without a frontend)."""
+        frontend = self._frontend[-1] if self._frontend and len(self._frontend) == len(self._seeds) else None
+        return self._seeds[-1].copy(), None if frontend is None else np.array(frontend, dtype=np.float64)
 
     # ------------------------------------------------------------------------------------------------ state
     def checkpoint(self) -> dict:

@@ -13,6 +13,11 @@ Usage (any loop that produces frames: a camera callback, a ROS node, a notebook)
 ``lrslam run`` drives the same object over the frames of a folder or bag (one code path); it adds the run folder
 around it (outputs, partial trajectory, checkpoints: :mod:`lrslam.pipeline.run`).
 
+Observers (:class:`lrslam.pipeline.observer.SlamObserver`, e.g. the live viewer
+:class:`lrslam.pipeline.viewer.RerunViewer`) watch the run: ``Slam(..., observers=[viewer])`` or
+``slam.add_observer(viewer)``; each gets a :class:`~lrslam.pipeline.observer.FrameEvent` per frame and the result
+at :meth:`Slam.finish`. Without observers no event is built.
+
 The scene bound: ``bound`` (3, 2) metres in the world frame when given, else the config's ``bound`` when it is a
 list, else the first frame's points grown by ``auto_bound_margin`` (a streaming run cannot look ahead; ``bound:
 auto`` needs the whole sequence and is for ``lrslam run``).
@@ -20,7 +25,9 @@ auto`` needs the whole sequence and is for ``lrslam run``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,10 +37,13 @@ from lrslam.frame import Frame
 from lrslam.pipeline.auto_bound import bound_from_frame
 from lrslam.pipeline.config import RunConfig
 from lrslam.pipeline.determinism import open3d_threads, seed_everything
+from lrslam.pipeline.observer import FrameEvent, SlamObserver
 from lrslam.pipeline.runner import FrameRecord, SlamResult, SlamRunner
 from lrslam.pipeline.timing import StageTimer
 
 __all__ = ["Slam", "FrameResult"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -72,6 +82,7 @@ class Slam:
         T_w_c0: (4, 4) pose of the first frame (the world frame); identity when None.
         timer: accumulates per-stage wall time (a new one when None).
         progress: ``progress(done, total)`` per iteration of the field's first-frame fit (the longest step).
+        observers: watch every frame and the end of the run (:meth:`add_observer`).
 
     A new Slam seeds Python's, numpy's and torch's RNGs with ``config.seed``: two runs with the same config and
     frames repeat (bit for bit with ``config.deterministic`` on the CPU).
@@ -79,7 +90,8 @@ class Slam:
 
     def __init__(self, config: RunConfig, K: np.ndarray, image_size: tuple[int, int], *,
                  bound: np.ndarray | None = None, T_w_c0: np.ndarray | None = None, timer: StageTimer | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> None:
+                 progress: Callable[[int, int], None] | None = None,
+                 observers: Iterable[SlamObserver] = ()) -> None:
         self.cfg = config
         self.K = np.asarray(K, dtype=np.float64)
         self.width, self.height = (int(x) for x in image_size)
@@ -93,20 +105,54 @@ class Slam:
             self.bound = np.asarray(config.bound, dtype=np.float64)
         self.timestamps: list[float] = []
         self.runner: SlamRunner | None = None
+        self.observers: list[SlamObserver] = list(observers)
         seed_everything(config.seed)
+
+    def add_observer(self, observer: SlamObserver) -> None:
+        """Watch the run from the next frame on: ``observer.on_frame(event)`` after every :meth:`track`,
+        ``observer.on_finish(result)`` after :meth:`finish`. An observer that raises is detached (logged); the run
+        goes on."""
+        self.observers.append(observer)
 
     # ------------------------------------------------------------------------------------------------ frames
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
         """Process the next frame: ``rgb`` (H, W, 3) uint8 RGB, ``depth`` (H, W) metres (0 = invalid), both
         ``image_size``; ``timestamp`` seconds. The first frame must have depth (InputError otherwise)."""
         frame = self._frame(rgb, depth, timestamp)
+        watched = bool(self.observers)
+        if watched:
+            t0, spent = time.perf_counter(), dict(self.timer.seconds)
         with open3d_threads(self.cfg.deterministic):
             if self.runner is None:
                 rec = self._start(frame)
             else:
                 rec = self.runner.step(frame)
         self.timestamps.append(float(timestamp))
-        return FrameResult(frame.index, float(timestamp), self.runner.traj.pose(-1), rec.keyframe, _status(rec), rec)
+        res = FrameResult(frame.index, float(timestamp), self.runner.traj.pose(-1), rec.keyframe, _status(rec), rec)
+        if watched:
+            event = self._event(frame, res, spent, time.perf_counter() - t0)
+            self._notify(lambda obs: obs.on_frame(event))
+        return res
+
+    def _event(self, frame: Frame, res: FrameResult, spent: dict[str, float], seconds: float) -> FrameEvent:
+        """The observers' view of the frame just tracked (``spent``: the stage timer's totals before it)."""
+        seed, frontend = self.runner.last_seed()
+        stages = {k: v - spent.get(k, 0.0) for k, v in self.timer.seconds.items() if v > spent.get(k, 0.0)}
+        return FrameEvent(frame, res, seed, frontend, tuple(self.runner.traj.keyframe_ids()), stages, seconds,
+                          self._trajectory, self.runner.parts.mapper)
+
+    def _trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(timestamps (N,) s, T_w_c (N, 4, 4))`` of every frame so far."""
+        return np.asarray(self.timestamps, dtype=np.float64), self.poses()
+
+    def _notify(self, call: Callable[[SlamObserver], None]) -> None:
+        """``call(observer)`` for every observer; one that raises is detached (logged with its traceback)."""
+        for obs in list(self.observers):
+            try:
+                call(obs)
+            except Exception:  # noqa: BLE001 - a broken observer must not stop the run
+                log.exception("observer %s failed; detached", type(obs).__name__)
+                self.observers.remove(obs)
 
     def _frame(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> Frame:
         rgb, depth = np.asarray(rgb), np.asarray(depth, dtype=np.float32)
@@ -167,4 +213,6 @@ class Slam:
             raise InputError("Slam.finish: no frame was tracked")
         result = self.runner.finish(mesh=self.cfg.output.mesh if mesh is None else mesh,
                                     mesh_resolution=mesh_resolution or self.cfg.output.mesh_resolution)
-        return replace(result, timestamps=np.asarray(self.timestamps, dtype=np.float64))
+        result = replace(result, timestamps=np.asarray(self.timestamps, dtype=np.float64))
+        self._notify(lambda obs: obs.on_finish(result))
+        return result

@@ -3,7 +3,7 @@
 # 1. system libraries open3d needs (libusb-1.0-0, libgomp1), via apt-get when missing and possible, and
 #    Chromium (the report test opens `lrslam report` pages in headless Chromium; skipped when it cannot be had);
 # 2. a virtualenv in $VENV (default .venv) with torch (CPU build pinned, override with TORCH_SPEC);
-# 3. this project, editable, with its test and distributed (Ray) extras.
+# 3. this project, editable, with its test, distributed (Ray) and viewer (Rerun) extras.
 set -euo pipefail
 VENV=${VENV:-.venv}
 PYTHON=${PYTHON:-python3}
@@ -45,7 +45,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
 "$VENV/bin/python" -m pip install -q "$TORCH_SPEC"
-"$VENV/bin/python" -m pip install -q -e ".[test,distributed]"
-"$VENV/bin/python" -c "import open3d, gtsam, kiss_icp, torch, lrslam.field, lrslam.frontend, lrslam.backend, lrslam.pipeline, ray; print('[install] ok: torch', torch.__version__, '| open3d', open3d.__version__, '| ray', ray.__version__, '| cuda', torch.cuda.is_available())"
+"$VENV/bin/python" -m pip install -q -e ".[test,distributed,viewer]"
+"$VENV/bin/python" -c "import open3d, gtsam, kiss_icp, torch, lrslam.field, lrslam.frontend, lrslam.backend, lrslam.pipeline, ray, rerun; print('[install] ok: torch', torch.__version__, '| open3d', open3d.__version__, '| ray', ray.__version__, '| rerun', rerun.__version__, '| cuda', torch.cuda.is_available())"
 # compile the numba CPU kernels once (cached on disk), so the first run and the tests do not pay for it
 "$VENV/bin/python" -c "from lrslam.field.cpu_ops import warm_up; print('[install] numba kernels:', 'compiled' if warm_up() else 'unavailable, torch kernels in use')"
