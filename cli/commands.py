@@ -36,7 +36,8 @@ def _ate_line(m: dict) -> str:
 
 def _summary_lines(metrics: dict, out: Path) -> list[str]:
     lines = [f"mode: {metrics['mode']}   frames: {metrics['n_frames']}   keyframes: {metrics['n_keyframes']}"
-             f"   loop closures: {metrics['n_loop_closures']}", _ate_line(metrics)]
+             f"   loop closures: {metrics['n_loop_closures']}   scene bound: {metrics['bound_source']}",
+             _ate_line(metrics)]
     if "mesh_accuracy_cm" in metrics:
         lines.append(f"mesh: accuracy {_num(metrics['mesh_accuracy_cm'], '.2f')} cm   completion "
                      f"{_num(metrics['mesh_completion_cm'], '.2f')} cm   completion ratio "
@@ -59,14 +60,16 @@ def _summary_lines(metrics: dict, out: Path) -> list[str]:
 
 
 def run(
-    path: Optional[Path] = typer.Argument(None, help="Sequence folder (TUM, Replica, ScanNet, 7-Scenes, synthetic)."),
+    path: Optional[Path] = typer.Argument(None, help="Sequence folder (TUM, Replica, ScanNet, 7-Scenes, "
+                                 "synthetic) or ROS bag (a ROS 1 .bag file or a ROS 2 bag folder)."),
     out: Path = typer.Option(Path("runs/latest"), "--out", "-o", help="Run folder to write."),
     mode: Optional[str] = typer.Option(None, help="field | frontend | fused (default from config: fused)."),
     config: Optional[str] = typer.Option(None, "--config", "-c",
-                                         help="Dataset preset name (replica, scannet, tum, 7scenes, synthetic, ...) "
-                                              "or a YAML file."),
-    representation: Optional[str] = typer.Option(None, "--repr", help="Representation preset (lrslam, eslam, cp-cp, "
-                                                                       "sa-sa, sa-cp, cp-sa)."),
+                                         help="Dataset preset (tum-cpu, tum, 7scenes-cpu, replica, scannet, "
+                                              "synthetic, rosbag-cpu, ...; a scene preset such as tum-fr1-desk adds "
+                                              "that scene's bound) or a YAML file."),
+    representation: Optional[str] = typer.Option(None, "--repr", help="Representation preset (lrslam: CP "
+                                                 "geometry + Six-axis appearance; eslam, cp-cp, sa-sa, sa-cp)."),
     overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override, e.g. --set schedule.map_every=2"),
     max_frames: Optional[int] = typer.Option(None, min=1, help="Process at most this many frames."),
     demo: bool = typer.Option(False, "--demo", help="Generate the built-in synthetic sequence and run on it."),
@@ -86,7 +89,7 @@ def run(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads for torch, numba and "
                                           "OpenMP (default: the libraries' own choice, all cores)."),
     viewer: bool = typer.Option(False, "--viewer", help="Draw the run live in a Rerun viewer (spawned; needs "
-                                "pip install 'lrslam[viewer]')."),
+                                "pip install 'lrslam\\[viewer]')."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the live view to this .rrd file (headless "
                                        "machines, CI; open it with `rerun FILE`)."),
 ) -> None:
@@ -123,6 +126,7 @@ def run(
         raise InputError("--resume continues the run in --out; it cannot be combined with --overwrite")
     loaded = load_run_config(config, representation, overrides=ov, mode=mode)   # fail fast on a bad config
     check_run_folder(out, overwrite)
+    typer.echo(f"config: {config or 'built-in defaults'}; {loaded.cfg.mode_settings()}")
     if demo:
         from lrslam.datasets.synth.writer import generate
 
@@ -135,7 +139,7 @@ def run(
     live = _open_viewer(viewer, rrd)
     try:
         res = run_sequence(path, loaded.cfg, out, progress=not quiet, overwrite=overwrite, presets=loaded.presets,
-                           resume=resume, viewer=live)
+                           resume=resume, viewer=live, announce=typer.echo)
     finally:   # flushed and closed also on an error or Ctrl-C: the recording keeps the frames drawn so far
         if live is not None:
             live.close()
@@ -161,7 +165,8 @@ def _demo_noise():
 
 
 def params(
-    config: Optional[str] = typer.Option("replica", "--config", "-c", help="Dataset preset or YAML (gives the bound)."),
+    config: Optional[str] = typer.Option("replica-room0", "--config", "-c", help="A scene preset or YAML that "
+                                         "gives a bound (e.g. replica-room0, scannet-scene0000, tum-fr1-desk)."),
     representation: Optional[str] = typer.Option(None, "--repr", help="One representation preset; default: all."),
     bound: Optional[str] = typer.Option(None, help="Override bound: xmin,xmax,ymin,ymax,zmin,zmax (metres)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
@@ -182,10 +187,11 @@ def params(
         if len(vals) != 6 or not all(map(math.isfinite, vals)):
             raise InputError(f"--bound needs 6 comma-separated numbers xmin,xmax,ymin,ymax,zmin,zmax, got {bound!r}")
         b = np.asarray(vals).reshape(3, 2)
-    elif cfg.bound is not None:
+    elif isinstance(cfg.bound, list):
         b = np.asarray(cfg.bound)
     else:
-        raise InputError(f"config {config!r} has no bound; pass --bound")
+        raise InputError(f"config {config!r} has no fixed bound (a run takes it from the data): pass --bound or a "
+                         "scene preset (e.g. replica-room0)")
     names = [representation] if representation else list_presets("representation")
     rows = {}
     for name in names:

@@ -19,7 +19,7 @@ def view(
                                          "sequence (when it is still where config.yaml says).")] = False,
 ) -> None:
     """Draw a finished run in Rerun: camera path, trajectories (run, seeds, frontend, ground truth when the
-    sequence is readable), keyframes, mesh, running ATE and metrics. Needs ``pip install 'lrslam[viewer]'``.
+    sequence is readable), keyframes, mesh, running ATE and metrics. Needs ``pip install 'lrslam\\[viewer]'``.
 
     Exit code 2: not a run folder, or rerun-sdk missing."""
     from lrslam.logs import setup_console_logging

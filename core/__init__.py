@@ -2,9 +2,10 @@
 
 Sub-packages (see ``docs/ARCHITECTURE.md``): ``lrslam.datasets`` (readers, the synthetic generator),
 ``lrslam.frontend`` (odometry, keyframe policy), ``lrslam.field`` (the LRSLAM scene model; the only place torch
-is used), ``lrslam.backend`` (pose graph, loop closure, graph policy), ``lrslam.pipeline`` (the SLAM loop and its
-run folder), ``lrslam.evaluation`` (ATE, mesh metrics: the only readers of ground truth), ``lrslam.tools``
-(batches, reports), ``lrslam.cli`` (the command line).
+computes: elsewhere it only sets threads, seeds RNGs, detects CUDA and saves checkpoints), ``lrslam.backend``
+(pose graph, loop closure, graph policy), ``lrslam.pipeline`` (the SLAM loop and its run folder),
+``lrslam.evaluation`` (ATE, mesh metrics: the only readers of ground truth), ``lrslam.tools`` (batches, reports),
+``lrslam.cli`` (the command line).
 Conventions (poses ``T_a_b``, OpenCV camera) live in :mod:`lrslam.geometry` and :mod:`lrslam.camera`.
 """
 

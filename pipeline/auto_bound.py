@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -52,10 +53,11 @@ def bound_from_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, margin
 
 
 def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = PREPASS_MARGIN_M,
-                       max_depth: float = 6.0, pixel_stride: int = 8) -> np.ndarray:
+                       max_depth: float = 6.0, pixel_stride: int = 8,
+                       progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Bound (3, 2) metres (world frame, first camera at ``T_w_c0``) covering every frame of ``seq`` seen from
     its odometry pose: camera centres and depth points (every ``pixel_stride``-th pixel, depth < ``max_depth``
-    metres), 0.5-99.5 percentile extent plus ``margin`` metres."""
+    metres), 0.5-99.5 percentile extent plus ``margin`` metres. ``progress(done, total)`` after each frame."""
     from lrslam.frontend.odometry import Odometry
 
     first = seq[0]
@@ -70,6 +72,8 @@ def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = PR
         T = np.asarray(res.T_w_c, dtype=np.float64)
         centres.append(T[:3, 3])
         points.append(_world_points(frame.depth, frame.K, T, max_depth, pixel_stride))
+        if progress is not None:
+            progress(i + 1, len(seq))
     pts = np.vstack(points)
     if len(pts) == 0:
         raise InputError(f"{seq.root}: cannot estimate a scene bound: no frame has valid depth")

@@ -70,7 +70,7 @@ class ScheduleConfig(StrictModel):
 
 
 class PartsConfig(StrictModel):
-    """The parts the runner is built from (:func:`lrslam.pipeline.parts.build_runner`); the modes are presets.
+    """The parts the runner is built from (:func:`lrslam.pipeline.parts.build_parts`); the modes are presets.
 
     seeder: ``constant_velocity`` (ESLAM) or ``odometry`` (the frontend). refiner: ``field`` (LRSLAM tracking,
     which also builds the field and its mapper) or ``none``. keyframer: ``every_n`` (ESLAM: every
@@ -113,8 +113,11 @@ class RunConfig(StrictModel):
     deterministic: bool = False
     parts: PartsConfig = PartsConfig()
     dataset: DatasetSection = DatasetSection()
-    # (3,2) metres, world frame; "auto": from an odometry pre-pass over the sequence; None: from the data, else the
-    # first frame's points + auto_bound_margin
+    # The field's scene bound, (3, 2) metres in the world frame. None (the default: the bound comes from the data):
+    # the sequence's own bound when it states one (a synthetic scene.yaml), else an odometry pre-pass over the
+    # whole sequence (lrslam run with a field), else the first frame's points + auto_bound_margin (a streaming run,
+    # or a run without a field, which needs none); "auto": the pre-pass even where the sequence states a bound; a
+    # list: given (a scene preset, or the user), checked frame by frame (a warning when the camera's view leaves it)
     bound: list[list[float]] | Literal["auto"] | None = None
     auto_bound_margin: float = Field(1.0, ge=0)         # metres added around the first frame's points
     initial_pose: Literal["identity", "gt"] = "identity"  # "gt": first pose from GT (ESLAM protocol) when present
@@ -161,6 +164,23 @@ class RunConfig(StrictModel):
             raise ValueError("backend.factors has 'field' but parts.refiner=none builds no field: use "
                              "parts.refiner=field or drop the factor")
         return self
+
+    def mode_settings(self) -> str:
+        """One line: the mode, its parts and the settings that say how hard it works (printed when a run starts,
+        kept in ``metrics.json``)."""
+        p, s = self.parts, self.schedule
+        out = [f"mode {self.mode} (seeder {p.seeder}, refiner {p.refiner}, keyframer {p.keyframer}, backend "
+               f"{p.backend})"]
+        if p.refiner == "field":
+            t, m = self.field.tracking, self.field.mapping
+            out.append(f"tracking {t.iters} it x {t.n_rays} rays, mapping {m.iters} it x {m.n_rays} rays every "
+                       f"{s.map_every} frames{' in the background' if s.background_mapping else ''} "
+                       f"(device {self.field.device})")
+        if p.backend == "graph":
+            out.append(f"graph solved {self.backend.optimise.replace('_', ' ')}")
+        size = self.reader_options().resize
+        out.append("images " + (f"resized to {size[0]}x{size[1]}" if size else "at their own size"))
+        return "; ".join(out)
 
     def reader_options(self):
         from lrslam.datasets import ReaderOptions

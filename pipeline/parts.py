@@ -291,7 +291,7 @@ class Parts:
 
 def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray) -> Parts:
     """Build the configured parts (``cfg.parts``); each gets its own config section only. The combinations
-    were checked when ``cfg`` was built (:func:`lrslam.pipeline.config.check_parts`)."""
+    were checked when ``cfg`` was built (:meth:`lrslam.pipeline.config.RunConfig._check_parts`)."""
     p, sc = cfg.parts, cfg.schedule
     field = None
     if p.refiner == "field":

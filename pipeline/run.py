@@ -73,21 +73,36 @@ def _open(path: str | Path, cfg: RunConfig):
     return seq
 
 
-def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray) -> tuple[np.ndarray, str]:
-    """The field's scene bound (3, 2) in metres (world frame) and where it came from: the config's ``bound``
-    (``auto``: an odometry pre-pass), else the dataset's, else the first frame's points (``T0``: its pose)."""
-    if cfg.bound == "auto":
-        b, src = bound_from_prepass(seq, cfg.odometry, T0), "auto (pre-pass)"
-    elif cfg.bound is not None:
-        b = np.asarray(cfg.bound, dtype=np.float64)
-        src = "config"
-    elif seq.bound is not None:
+def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
+                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, str]:
+    """The field's scene bound (3, 2) in metres (world frame, first camera at ``T0``) and where it came from:
+    ``given`` (a list in the config), ``dataset`` (the sequence states it), ``auto (pre-pass)`` (an odometry pass
+    over the whole sequence; ``progress(done, total)`` per frame), ``auto (first frame)`` (its points plus
+    ``auto_bound_margin``: a run without a field needs no pre-pass). See :class:`RunConfig` ``bound``."""
+    has_field = cfg.parts.refiner == "field"
+    if isinstance(cfg.bound, list):
+        b, src = np.asarray(cfg.bound, dtype=np.float64), "given"
+    elif cfg.bound is None and seq.bound is not None:
         b, src = np.asarray(seq.bound, dtype=np.float64), "dataset"
+    elif has_field and len(seq) > 1:
+        b, src = bound_from_prepass(seq, cfg.odometry, T0, progress=progress), "auto (pre-pass)"
     else:
         b, src = bound_from_frame(first.depth, first.K, T0, margin=cfg.auto_bound_margin), "auto (first frame)"
     if b.shape != (3, 2) or not np.all(np.isfinite(b)) or np.any(b[:, 1] <= b[:, 0]):
         raise InputError(f"scene bound must be 3 finite [min, max] pairs with min < max, got {b.tolist()}")
     return b, src
+
+
+@contextmanager
+def _prepass_bar(cfg: RunConfig, seq, progress: bool) -> Iterator[Callable[[int, int], None] | None]:
+    """A progress bar over the bound's odometry pre-pass (when it will run and progress is wanted)."""
+    if not progress or isinstance(cfg.bound, list) or (cfg.bound is None and seq.bound is not None):
+        yield None
+        return
+    from tqdm import tqdm
+
+    with tqdm(total=len(seq), desc="scene bound (odometry pre-pass)", unit="frame", leave=False) as bar:
+        yield lambda done, total: bar.update(done - bar.n)
 
 
 def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
@@ -161,6 +176,7 @@ class _Progress:
     t_start: float                 # perf_counter origin of the run's wall time (shifted on resume)
     next_frame: int
     resumed_at: list[int]
+    bound_s: float = 0.0           # wall time of choosing the bound (the odometry pre-pass), in the wall time
 
     def state(self, frame: int, settings: dict, timestamps: np.ndarray) -> dict:
         """The checkpoint after ``frame`` (see :mod:`lrslam.pipeline.checkpoint`)."""
@@ -168,7 +184,7 @@ class _Progress:
                 "bound_source": self.bound_src, "rng": global_rng_state(),
                 "frame_seconds": np.asarray(self.frame_seconds), "elapsed_s": time.perf_counter() - self.t_start,
                 "coverage_frames": None if self.coverage is None else list(self.coverage.frames),
-                "resumed_at": list(self.resumed_at)}
+                "resumed_at": list(self.resumed_at), "bound_s": self.bound_s}
 
 
 def _initial_pose(cfg: RunConfig, first) -> np.ndarray:
@@ -182,20 +198,26 @@ def _initial_pose(cfg: RunConfig, first) -> np.ndarray:
 
 
 def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool = False,
-             viewer: RerunViewer | None = None) -> _Progress:
-    """A new run: choose the bound, start the Slam (it seeds every RNG; ``viewer`` watches it) on the first
-    frame."""
+             viewer: RerunViewer | None = None, announce: Callable[[str], None] | None = None) -> _Progress:
+    """A new run: choose the bound (``announce``: told where it came from), start the Slam (it seeds every RNG;
+    ``viewer`` watches it) on the first frame. The run's wall time includes the bound's pre-pass."""
     T0 = _initial_pose(cfg, first)
-    bound, bound_src = choose_bound(cfg, seq, first, T0)
-    log.info("sequence %s: %d frames, reader %s, bound %s (%s), mode %s, seed %d", path, len(seq), seq.name,
-             np.round(bound, 3).tolist(), bound_src, cfg.mode, cfg.seed)
     t_start = time.perf_counter()
+    with _prepass_bar(cfg, seq, progress) as on_frame:
+        bound, bound_src = choose_bound(cfg, seq, first, T0, on_frame)
+    bound_s = time.perf_counter() - t_start
+    where = f"scene bound: {bound_src}, {np.round(bound, 2).tolist()} m ({bound_s:.1f} s)"
+    log.info("sequence %s: %d frames, reader %s, mode %s, seed %d; %s", path, len(seq), seq.name, cfg.mode, cfg.seed,
+             where)
+    if announce is not None:
+        announce(where)
+    t_frame = time.perf_counter()
     with _first_fit_bar(cfg, progress) as on_fit:
         slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit,
                     observers=[viewer] if viewer is not None else [])
         slam.track(first.rgb, first.depth, first.timestamp)
     coverage = BoundCoverage(bound) if cfg.parts.refiner == "field" else None
-    return _Progress(slam, bound_src, coverage, [time.perf_counter() - t_start], t_start, 1, [])
+    return _Progress(slam, bound_src, coverage, [time.perf_counter() - t_frame], t_start, 1, [], bound_s)
 
 
 def _resumed_run(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Progress:
@@ -212,7 +234,7 @@ def _resumed_run(cfg: RunConfig, first, timer: StageTimer, state: dict) -> _Prog
              frame, slam.n_keyframes, frame + 1)
     return _Progress(slam, str(state["bound_source"]), coverage, [float(x) for x in state["frame_seconds"]],
                      time.perf_counter() - float(state["elapsed_s"]), frame + 1,
-                     [int(x) for x in state["resumed_at"]] + [frame + 1])
+                     [int(x) for x in state["resumed_at"]] + [frame + 1], float(state.get("bound_s", 0.0)))
 
 
 def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialTrajectory,
@@ -248,7 +270,8 @@ def _frames(run: _Progress, seq, mode: str, timer: StageTimer, partial: PartialT
 
 def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress: bool = True, *,
                  overwrite: bool = False, presets: dict[str, str | None] | None = None,
-                 resume: bool = False, viewer: RerunViewer | None = None) -> RunResult:
+                 resume: bool = False, viewer: RerunViewer | None = None,
+                 announce: Callable[[str], None] | None = None) -> RunResult:
     """Run the configured pipeline over the sequence at ``path``; write and return the results.
 
     ``out_dir`` must be new, empty or an earlier run folder (any non-empty folder with ``overwrite``); its old
@@ -256,8 +279,9 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     ``checkpoint.pt`` every ``output.checkpoint_every`` keyframes; ``bound: auto`` estimates the scene bound
     with an odometry pre-pass). ``resume``: continue the run in ``out_dir`` from its checkpoint instead (same
     config and sequence, else InputError; ``run.log`` is appended to). ``presets``: the preset names the config
-    came from, for the provenance record. ``viewer``: draws the run as it goes (it gets the sequence's ground truth
-    for its running ATE; the caller closes it).
+    came from, for the provenance record and ``metrics.json``. ``viewer``: draws the run as it goes (it gets the
+    sequence's ground truth for its running ATE; the caller closes it). ``announce``: told, in one line, where the
+    scene bound came from (given, the dataset's, the odometry pre-pass, the first frame) before the first frame.
 
     Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
     ``metrics.json``, with ``status`` "ok" or "degraded").
@@ -271,14 +295,14 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     handler = _attach_file_log(out_dir, append=resume)
     try:
         with open3d_threads(cfg.deterministic):   # one thread: Open3D repeats bit for bit
-            return _run_in_folder(path, cfg, out_dir, saved, presets, progress, viewer)
+            return _run_in_folder(path, cfg, out_dir, saved, presets, progress, viewer, announce)
     finally:
         logging.getLogger("lrslam").removeHandler(handler)
         handler.close()
 
 
 def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, presets, progress: bool,
-                   viewer: RerunViewer | None = None) -> RunResult:
+                   viewer: RerunViewer | None = None, announce: Callable[[str], None] | None = None) -> RunResult:
     """1. open the sequence and record the config; 2. start (or resume) the run; 3. every frame; 4. outputs."""
     seq = _open(path, cfg)
     record = _config_record(cfg, seq, provenance(path, seq.name, presets))
@@ -298,14 +322,14 @@ def _run_in_folder(path, cfg: RunConfig, out_dir: Path, saved: dict | None, pres
         if viewer is not None:
             run.slam.add_observer(viewer)
     else:
-        run = _new_run(path, cfg, seq, first, timer, progress, viewer)
+        run = _new_run(path, cfg, seq, first, timer, progress, viewer, announce)
     partial = PartialTrajectory(out_dir, seq.timestamps, cfg.output.partial_every)
     checkpoints = Checkpointer(out_dir, cfg.output.checkpoint_every)
     _frames(run, seq, cfg.mode, timer, partial, checkpoints, lambda i: run.state(i, settings, timestamps), out_dir,
             progress)
     wall = time.perf_counter() - run.t_start   # tracking and mapping; the mesh is timed as its own stage
     result = run.slam.finish()
-    metrics = _write_results(out_dir, cfg, seq, result, timer, wall, run, progress)
+    metrics = _write_results(out_dir, cfg, seq, result, timer, wall, run, progress, record["provenance"]["presets"])
     partial.remove()
     checkpoints.remove()
     return RunResult(out_dir, metrics, result.timestamps, result.poses)
@@ -324,12 +348,14 @@ def _viewer_ground_truth(seq) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _write_results(out_dir: Path, cfg: RunConfig, seq, result, timer: StageTimer, wall: float, run: _Progress,
-                   progress: bool) -> dict:
-    """The run folder's outputs and ``metrics.json`` (status included); returns the written metrics."""
+                   progress: bool, presets: dict) -> dict:
+    """The run folder's outputs and ``metrics.json`` (status included; the preset, the mode's settings and the
+    bound's source and time with them); returns the written metrics."""
     from lrslam.pipeline.outputs import write_outputs
 
     metrics = write_outputs(out_dir, cfg, seq, result, result.timestamps, timer, wall, run.slam.bound,
                             run.bound_src, progress, np.asarray(run.frame_seconds))
+    metrics.update(preset=presets.get("config"), mode_settings=cfg.mode_settings(), bound_s=round(run.bound_s, 3))
     metrics["host"] = {"python": platform.python_version(), "machine": platform.machine()}
     if run.resumed_at:
         metrics["resumed_at_frames"] = run.resumed_at
