@@ -3,8 +3,9 @@
 A sequence argument is ``PATH`` or ``PATH:PRESET`` (the dataset preset or YAML file for that sequence only; a
 path that exists as given is never split at a colon). Job names are ``<sequence>/<variant>/s<seed>`` where
 ``<variant>`` is the mode, or ``<mode>-<representation>`` when representations are named; sequences that share a
-folder name are told apart by their parent folders (``a-room``, ``b-room``). The frontend mode neither uses the
-field seed nor a representation: it runs once per sequence (``<sequence>/frontend/s0``).
+folder name are told apart by their parent folders (``a-room``, ``b-room``). A mode whose parts build no field
+(``parts.refiner: none``, e.g. ``frontend``) uses neither the field's seed nor a representation: it runs once per
+sequence (``<sequence>/<mode>/s0``).
 
 Everything that can be checked before the first job starts is checked by :func:`check_jobs` (sequence folders
 and their layout, run folders), so a bad path is a one-line error, not a failure halfway through a batch.
