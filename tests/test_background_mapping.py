@@ -82,17 +82,27 @@ def _run(cfg, seq, fr):
 
 
 def test_a_background_run_repeats_and_tracks_as_well_as_the_serial_one(frames):
+    """Bit for bit on a repeat; as accurate as the serial schedule over 3 seeds (one seed's ATE at a few iterations
+    moves by 0.3-0.7 cm with the CPU's vector width: on an AVX-512 machine seed 1 gave 1.28 serial, 1.96 background
+    at 5 iterations; the seed mean is the measure)."""
     seq, fr = frames
     threads = torch.get_num_threads()
-    serial, ate_serial = _run(build_config("synthetic", overrides=TINY, mode="field", seed=1), seq, fr)
-    cfg = build_config("synthetic", overrides=TINY + ["schedule.background_mapping=true"], mode="field", seed=1)
-    a, ate_a = _run(cfg, seq, fr)
-    b, _ = _run(cfg, seq, fr)
-    assert torch.get_num_threads() == threads                # finish() gave the threads back
-    assert np.array_equal(a.poses, b.poses)                  # the schedule, not thread timing, decides
-    assert not np.array_equal(a.poses, serial.poses)         # it is another schedule (frames track a staler map)
-    print("ATE cm serial %.3f background %.3f" % (ate_serial, ate_a))
-    assert ate_a < max(1.5 * ate_serial, ate_serial + 0.5), (ate_a, ate_serial)
+    more = TINY + ["field.tracking.iters=10", "field.mapping.iters=10"]
+    serial, background = [], []
+    for seed in (1, 2, 3):
+        ser, ate_serial = _run(build_config("synthetic", overrides=more, mode="field", seed=seed), seq, fr)
+        cfg = build_config("synthetic", overrides=more + ["schedule.background_mapping=true"], mode="field",
+                           seed=seed)
+        a, ate_a = _run(cfg, seq, fr)
+        serial.append(ate_serial), background.append(ate_a)
+        if seed == 1:
+            b, _ = _run(cfg, seq, fr)
+            assert torch.get_num_threads() == threads            # finish() gave the threads back
+            assert np.array_equal(a.poses, b.poses)              # the schedule, not thread timing, decides
+            assert not np.array_equal(a.poses, ser.poses)        # it is another schedule (frames track a staler map)
+    s, g = float(np.mean(serial)), float(np.mean(background))
+    print("ATE cm over 3 seeds: serial %.3f background %.3f" % (s, g))
+    assert g < max(1.5 * s, s + 0.5), (background, serial)
 
 
 def test_fast_motion_waits_for_the_round():
