@@ -73,18 +73,31 @@ def _open(path: str | Path, cfg: RunConfig):
     return seq
 
 
+def _bound_plan(cfg: RunConfig, seq) -> str:
+    """Where the run's bound will come from: ``given``, ``dataset``, ``prepass`` or ``first_frame`` (see
+    :func:`choose_bound`)."""
+    if isinstance(cfg.bound, list):
+        return "given"
+    if cfg.bound is None and seq.bound is not None:
+        return "dataset"
+    if cfg.bound == "auto" or (cfg.parts.refiner == "field" and len(seq) > 1):
+        return "prepass"
+    return "first_frame"
+
+
 def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
                  progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, str]:
     """The field's scene bound (3, 2) in metres (world frame, first camera at ``T0``) and where it came from:
     ``given`` (a list in the config), ``dataset`` (the sequence states it), ``auto (pre-pass)`` (an odometry pass
-    over the whole sequence; ``progress(done, total)`` per frame), ``auto (first frame)`` (its points plus
-    ``auto_bound_margin``: a run without a field needs no pre-pass). See :class:`RunConfig` ``bound``."""
-    has_field = cfg.parts.refiner == "field"
-    if isinstance(cfg.bound, list):
+    over the whole sequence: ``bound: auto``, or no bound and a field; ``progress(done, total)`` per frame),
+    ``auto (first frame)`` (its points plus ``auto_bound_margin``: a run without a field needs no pre-pass). See
+    :class:`RunConfig` ``bound``."""
+    plan = _bound_plan(cfg, seq)
+    if plan == "given":
         b, src = np.asarray(cfg.bound, dtype=np.float64), "given"
-    elif cfg.bound is None and seq.bound is not None:
+    elif plan == "dataset":
         b, src = np.asarray(seq.bound, dtype=np.float64), "dataset"
-    elif has_field and len(seq) > 1:
+    elif plan == "prepass":
         b, src = bound_from_prepass(seq, cfg.odometry, T0, progress=progress), "auto (pre-pass)"
     else:
         b, src = bound_from_frame(first.depth, first.K, T0, margin=cfg.auto_bound_margin), "auto (first frame)"
@@ -96,7 +109,7 @@ def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
 @contextmanager
 def _prepass_bar(cfg: RunConfig, seq, progress: bool) -> Iterator[Callable[[int, int], None] | None]:
     """A progress bar over the bound's odometry pre-pass (when it will run and progress is wanted)."""
-    if not progress or isinstance(cfg.bound, list) or (cfg.bound is None and seq.bound is not None):
+    if not progress or _bound_plan(cfg, seq) != "prepass":
         yield None
         return
     from tqdm import tqdm
