@@ -18,11 +18,10 @@ import numpy as np
 from lrslam.camera import backproject_depth, strided_intrinsics, transform_points
 from lrslam.errors import InputError
 
-__all__ = ["bound_from_frame", "bound_from_prepass", "fraction_outside", "BoundCoverage", "PREPASS_MARGIN_M"]
+__all__ = ["bound_from_frame", "bound_from_prepass", "fraction_outside", "BoundCoverage", "PREPASS_TAIL_PCT"]
 
 log = logging.getLogger(__name__)
 
-PREPASS_MARGIN_M = 0.3    # metres added around the pre-pass extent
 # percent of the pre-pass points left out at either end of each axis (stray depth). At 0.5 % the TUM fr1/rpy and
 # 7-Scenes excerpts each had 3 frames with 6-9 % of their depth outside the bound; at 0.1 % none above 2.3 %
 PREPASS_TAIL_PCT = 0.1
@@ -57,7 +56,7 @@ def bound_from_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, margin
     return _extent(np.vstack([pts, T_w_c[:3, 3]]), T_w_c[None, :3, 3], margin, 0.5)
 
 
-def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = PREPASS_MARGIN_M,
+def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = 1.0,
                        max_depth: float = 6.0, pixel_stride: int = 8,
                        progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Bound (3, 2) metres (world frame, first camera at ``T_w_c0``) covering every frame of ``seq`` seen from

@@ -119,7 +119,8 @@ class RunConfig(StrictModel):
     # or a run without a field, which needs none); "auto": the pre-pass even where the sequence states a bound; a
     # list: given (a scene preset, or the user), checked frame by frame (a warning when the camera's view leaves it)
     bound: list[list[float]] | Literal["auto"] | None = None
-    auto_bound_margin: float = Field(1.0, ge=0)         # metres added around the first frame's points
+    # metres added around the data's extent (the pre-pass's points and camera centres, or the first frame's points)
+    auto_bound_margin: float = Field(1.0, ge=0)
     initial_pose: Literal["identity", "gt"] = "identity"  # "gt": first pose from GT (ESLAM protocol) when present
     field: FieldSLAMConfig = FieldSLAMConfig()
     odometry: OdometryConfig = OdometryConfig()

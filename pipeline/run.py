@@ -98,7 +98,7 @@ def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
     elif plan == "dataset":
         b, src = np.asarray(seq.bound, dtype=np.float64), "dataset"
     elif plan == "prepass":
-        b, src = bound_from_prepass(seq, cfg.odometry, T0, progress=progress), "auto (pre-pass)"
+        b, src = bound_from_prepass(seq, cfg.odometry, T0, cfg.auto_bound_margin, progress=progress), "auto (pre-pass)"
     else:
         b, src = bound_from_frame(first.depth, first.K, T0, margin=cfg.auto_bound_margin), "auto (first frame)"
     if b.shape != (3, 2) or not np.all(np.isfinite(b)) or np.any(b[:, 1] <= b[:, 0]):

@@ -82,14 +82,14 @@ def test_the_old_fixed_bound_fails_the_same_recording(user_recording, tmp_path, 
 def test_the_prepass_bound_holds_every_camera_centre_with_a_margin(trajectory, tmp_path):
     from lrslam.datasets import open_sequence
     from lrslam.datasets.synth.writer import generate
-    from lrslam.pipeline.auto_bound import PREPASS_MARGIN_M, bound_from_prepass
+    from lrslam.pipeline.auto_bound import bound_from_prepass
 
     seq = open_sequence(generate(tmp_path / trajectory, scene="room", trajectory=trajectory, n_frames=20, seed=1,
                                  width=160, height=120, show_progress=False))
     gt = seq.gt_poses()
     b = bound_from_prepass(seq, build_config("synthetic").odometry, gt[0])
     centres = gt[:, :3, 3]
-    margin = PREPASS_MARGIN_M / 2
+    margin = build_config("synthetic").auto_bound_margin / 2
     assert np.all(centres - margin > b[:, 0]) and np.all(centres + margin < b[:, 1]), (b.tolist(), trajectory)
 
 
@@ -105,14 +105,15 @@ def test_only_scene_presets_carry_a_bound():
 
 
 def test_a_view_of_a_far_wall_stays_inside_the_prepass_bound():
-    """One frame in a hundred looks at a wall 3 m beyond the rest: its points (1 % of the sequence's) must not be
-    cut off as stray depth (at 0.5 % tails the real excerpts each had 3 frames with 6-9 % of their depth outside)."""
-    from lrslam.pipeline.auto_bound import PREPASS_MARGIN_M, PREPASS_TAIL_PCT, _extent
+    """A few frames look at a wall 3 m beyond the rest: their points (0.4 % of the sequence's) must not be cut off
+    as stray depth (at 0.5 % tails they were, and the real excerpts each had 3 frames with 6-9 % of their depth
+    outside the bound)."""
+    from lrslam.pipeline.auto_bound import PREPASS_TAIL_PCT, _extent
 
     rng = np.random.default_rng(0)
-    near = rng.uniform(-1.0, 1.0, size=(99_000, 3))
-    wall = np.column_stack([rng.uniform(3.8, 4.0, 1_000), rng.uniform(-1.0, 1.0, (1_000, 2))])
-    b = _extent(np.vstack([near, wall]), np.zeros((1, 3)), PREPASS_MARGIN_M, PREPASS_TAIL_PCT)
+    near = rng.uniform(-1.0, 1.0, size=(99_600, 3))
+    wall = np.column_stack([rng.uniform(3.8, 4.0, 400), rng.uniform(-1.0, 1.0, (400, 2))])
+    b = _extent(np.vstack([near, wall]), np.zeros((1, 3)), 0.3, PREPASS_TAIL_PCT)
     inside = np.all((wall >= b[:, 0]) & (wall <= b[:, 1]), axis=1)
     assert inside.mean() > 0.95, b.tolist()
 
