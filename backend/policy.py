@@ -71,16 +71,19 @@ class Correction:
 
     ``poses``: the keyframes to overwrite, ``{kf: T_w_kf}`` (only those the solve moved by more than the write
     threshold; empty when it did not solve); ``remap``: keyframe ids to re-map the field over, most-moved first;
-    ``shifts``: ``{kf: (metres, degrees)}`` of each keyframe in ``poses``; ``loops``: verified loop closures
-    added; ``solved``: whether the graph was solved; ``edges``: the loops added, as ``(i, j)`` keyframe ids
-    (``j`` the new keyframe)."""
+    ``shifts``: ``{kf: (metres, degrees)}`` of each keyframe in ``poses``; ``solved``: whether the graph was
+    solved; ``edges``: the verified loop closures added, as ``(i, j)`` keyframe ids (``j`` the new keyframe)."""
 
     poses: dict[int, np.ndarray] = dc_field(default_factory=dict)
     remap: tuple[int, ...] = ()
     shifts: dict[int, tuple[float, float]] = dc_field(default_factory=dict)
-    loops: int = 0
     solved: bool = False
     edges: tuple[tuple[int, int], ...] = ()
+
+    @property
+    def loops(self) -> int:
+        """How many verified loop closures were added."""
+        return len(self.edges)
 
 
 class GraphBackend:
@@ -140,7 +143,7 @@ class GraphBackend:
                      len(loops) - len(real))
         edges = tuple((lc.i, lc.j) for lc in loops)
         if not (real or self.cfg.optimise == "every_keyframe"):
-            return Correction(loops=len(loops), edges=edges)
+            return Correction(edges=edges)
         return self._solve(poses, edges)
 
     def _add_factors(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> list:
@@ -184,7 +187,7 @@ class GraphBackend:
             if d_t > c.write_min_shift_m or d_r > c.write_min_shift_deg:
                 written[k], shifts[k] = T, (d_t, d_r)
         big = [k for k, (d_t, _) in sorted(shifts.items(), key=lambda kv: -kv[1][0]) if d_t > c.remap_min_shift_m]
-        return Correction(written, tuple(big[: c.remap_keyframes]), shifts, len(edges), True, edges)
+        return Correction(written, tuple(big[: c.remap_keyframes]), shifts, True, edges)
 
     def _is_correction(self, lc: LoopConstraint) -> bool:
         return lc.correction_m > self.cfg.loop_min_correction_m or lc.correction_deg > self.cfg.loop_min_correction_deg

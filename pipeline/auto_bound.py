@@ -37,7 +37,7 @@ def _world_points(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, max_depth
     return transform_points(T_w_c, pts[(z > 0) & (z < max_depth)])
 
 
-def _extent(points: np.ndarray, centres: np.ndarray, margin: float, tail_pct: float = 0.0) -> np.ndarray:
+def _extent(points: np.ndarray, centres: np.ndarray, margin: float, tail_pct: float) -> np.ndarray:
     """Axis-aligned (3, 2) extent of ``points`` (M, 3) without ``tail_pct`` percent at either end of each axis
     (stray depth), always holding every camera centre (K, 3), grown by ``margin`` metres."""
     lo, hi = np.percentile(points, tail_pct, axis=0), np.percentile(points, 100.0 - tail_pct, axis=0)

@@ -106,18 +106,6 @@ def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
     return b, src
 
 
-@contextmanager
-def _prepass_bar(cfg: RunConfig, seq, progress: bool) -> Iterator[Callable[[int, int], None] | None]:
-    """A progress bar over the bound's odometry pre-pass (when it will run and progress is wanted)."""
-    if not progress or _bound_plan(cfg, seq) != "prepass":
-        yield None
-        return
-    from tqdm import tqdm
-
-    with tqdm(total=len(seq), desc="scene bound (odometry pre-pass)", unit="frame", leave=False) as bar:
-        yield lambda done, total: bar.update(done - bar.n)
-
-
 def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
     """config.yaml: the resolved settings (the reader actually used) + ``provenance``."""
     rec = cfg.resolved()
@@ -149,15 +137,16 @@ def _after_frame(i: int, res: FrameResult, frame, slam: Slam, coverage: BoundCov
 
 
 @contextmanager
-def _first_fit_bar(cfg: RunConfig, progress: bool) -> Iterator[Callable[[int, int], None] | None]:
-    """A progress bar over the field's first-frame fit (minutes on a CPU at the paper's settings: never silent);
-    yields its callback (None without a field or without progress)."""
-    if not progress or cfg.parts.refiner != "field":
+def _bar(show: bool, total: int, desc: str, unit: str) -> Iterator[Callable[[int, int], None] | None]:
+    """A progress bar over a long step before the first frame (the bound's pre-pass, the field's first-frame fit:
+    minutes on a CPU at the paper's settings, never silent); yields its ``callback(done, total)``, None when not
+    shown."""
+    if not show:
         yield None
         return
     from tqdm import tqdm
 
-    with tqdm(total=cfg.field.mapping.first_iters, desc="first-frame fit", unit="it", leave=False) as bar:
+    with tqdm(total=total, desc=desc, unit=unit, leave=False) as bar:
         yield lambda done, total: bar.update(done - bar.n)
 
 
@@ -216,7 +205,8 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
     ``viewer`` watches it) on the first frame. The run's wall time includes the bound's pre-pass."""
     T0 = _initial_pose(cfg, first)
     t_start = time.perf_counter()
-    with _prepass_bar(cfg, seq, progress) as on_frame:
+    prepass = progress and _bound_plan(cfg, seq) == "prepass"
+    with _bar(prepass, len(seq), "scene bound (odometry pre-pass)", "frame") as on_frame:
         bound, bound_src = choose_bound(cfg, seq, first, T0, on_frame)
     bound_s = time.perf_counter() - t_start
     where = f"scene bound: {bound_src}, {np.round(bound, 2).tolist()} m ({bound_s:.1f} s)"
@@ -225,7 +215,8 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
     if announce is not None:
         announce(where)
     t_frame = time.perf_counter()
-    with _first_fit_bar(cfg, progress) as on_fit:
+    fit = progress and cfg.parts.refiner == "field"
+    with _bar(fit, cfg.field.mapping.first_iters, "first-frame fit", "it") as on_fit:
         slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit,
                     observers=[viewer] if viewer is not None else [])
         slam.track(first.rgb, first.depth, first.timestamp)

@@ -32,7 +32,7 @@ from pydantic import Field
 
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.camera import strided_intrinsics
+from lrslam.camera import strided_intrinsics, transform_points
 from lrslam.geometry import inv
 from lrslam.pipeline.observer import FieldView, FrameEvent
 from lrslam.pipeline.viewer_stream import RerunStream, import_rerun
@@ -78,25 +78,21 @@ def running_ate(timestamps: np.ndarray, poses: np.ndarray, ground_truth: GroundT
         return None
 
 
-def aligned_ground_truth(ground_truth: GroundTruth, timestamps: np.ndarray, T_align: np.ndarray) -> np.ndarray:
-    """Ground-truth positions (n, 3) metres at the frames' ``timestamps`` (nearest sample within 0.02 s), in the
-    run's world: ``inv(T_align)`` applied (``T_align`` (4, 4) maps the run's world into the ground truth's, as
+def aligned_ground_truth(ground_truth: GroundTruth, timestamps: np.ndarray, poses: np.ndarray,
+                         T_align: np.ndarray) -> np.ndarray:
+    """Ground-truth positions (n, 3) metres matched to the run's frames (``timestamps (N,)`` s, ``poses (N, 4,
+    4)``) as the ATE matches them (:func:`lrslam.evaluation.ate.matched_poses`), in the run's world:
+    ``inv(T_align)`` applied (``T_align`` (4, 4) maps the run's world into the ground truth's, as
     :class:`~lrslam.evaluation.ate.AteResult` gives it)."""
-    from lrslam.evaluation.association import associate
+    from lrslam.evaluation.ate import matched_poses
 
-    gt_ts, gt_poses = ground_truth
-    _, idx = associate(np.asarray(timestamps, dtype=np.float64), gt_ts, 0.02)
-    p = gt_poses[idx][:, :3, 3]
-    T = inv(T_align)
-    return p @ T[:3, :3].T + T[:3, 3]
+    _, _, gt = matched_poses(timestamps, poses, *ground_truth)
+    return transform_points(inv(T_align), gt[:, :3, 3])
 
 
-def _finite_ground_truth(ground_truth: GroundTruth | None) -> GroundTruth | None:
-    if ground_truth is None:
-        return None
-    ts, poses = (np.asarray(x, dtype=np.float64) for x in ground_truth)
-    ok = np.isfinite(ts) & np.all(np.isfinite(poses), axis=(1, 2))
-    return (ts[ok], poses[ok]) if ok.any() else None
+def _as_ground_truth(ground_truth: GroundTruth | None) -> GroundTruth | None:
+    """float64 arrays (non-finite rows are skipped by the ATE's own association, as in the run's evaluation)."""
+    return None if ground_truth is None else tuple(np.asarray(x, dtype=np.float64) for x in ground_truth)
 
 
 class RerunViewer:
@@ -120,7 +116,7 @@ class RerunViewer:
         import_rerun()     # fail now, not at the first frame
         self._sink = (spawn, rrd, name)
         self._stream: RerunStream | None = None
-        self.ground_truth = _finite_ground_truth(ground_truth)
+        self.ground_truth = _as_ground_truth(ground_truth)
         self.seconds = 0.0          # the viewer's own wall time so far
         self.frames = 0
         self._seeds: list[np.ndarray] = []
@@ -133,7 +129,7 @@ class RerunViewer:
 
     def set_ground_truth(self, ground_truth: GroundTruth | None) -> None:
         """``(timestamps (M,) s, T_w_c (M, 4, 4))`` for the running ATE and the ``gt`` trajectory (None: none)."""
-        self.ground_truth = _finite_ground_truth(ground_truth)
+        self.ground_truth = _as_ground_truth(ground_truth)
 
     @property
     def stream(self) -> RerunStream:
@@ -239,7 +235,7 @@ class RerunViewer:
         ate = running_ate(ts, poses, self.ground_truth)
         if ate is not None:
             s.scalar("metrics/ate_cm", ate.rmse_cm)
-            s.trajectory("gt", aligned_ground_truth(self.ground_truth, ts, ate.T_align))
+            s.trajectory("gt", aligned_ground_truth(self.ground_truth, ts, poses, ate.T_align))
 
     def _corrections(self, event: FrameEvent, poses: np.ndarray) -> None:
         moved_from = event.moved_from

@@ -142,7 +142,7 @@ def _static(stream: RerunStream, run: RunFolder, gt) -> None:
         stream.keyframes(run.poses[list(run.keyframe_ids), :3, 3], run.keyframe_ids, static=True)
     ate = running_ate(run.timestamps, run.poses, gt)
     if ate is not None:
-        stream.trajectory("gt", aligned_ground_truth(gt, run.timestamps, ate.T_align), static=True)
+        stream.trajectory("gt", aligned_ground_truth(gt, run.timestamps, run.poses, ate.T_align), static=True)
     if run.mesh is not None:
         import trimesh
 
