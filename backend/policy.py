@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass, field as dc_field, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -23,11 +23,11 @@ from lrslam.geometry import inv, pose_error
 
 if TYPE_CHECKING:  # annotations only: GTSAM, OpenCV and Open3D load when a graph is built, not on import
     from lrslam.backend.graph import PoseGraph
-    from lrslam.backend.keyframe_link import KeyframeLink
+    from lrslam.backend.keyframe_link import KeyframeLink, KeyframeLinkMeasurement
     from lrslam.backend.loop_closure import LoopCloser, LoopConstraint
     from lrslam.frontend.odometry import OdometryResult
 
-__all__ = ["BackendConfig", "Correction", "GraphBackend", "PoseLosses"]
+__all__ = ["BackendConfig", "Correction", "FactorRecord", "GraphBackend", "PoseLosses"]
 
 log = logging.getLogger(__name__)
 
@@ -72,18 +72,35 @@ class Correction:
     ``poses``: the keyframes to overwrite, ``{kf: T_w_kf}`` (only those the solve moved by more than the write
     threshold; empty when it did not solve); ``remap``: keyframe ids to re-map the field over, most-moved first;
     ``shifts``: ``{kf: (metres, degrees)}`` of each keyframe in ``poses``; ``solved``: whether the graph was
-    solved; ``edges``: the verified loop closures added, as ``(i, j)`` keyframe ids (``j`` the new keyframe)."""
+    solved; ``edges``: the verified loop closures added, as ``(i, j)`` keyframe ids (``j`` the new keyframe);
+    ``link``: the frontend's direct registration ``T_i_j`` (4, 4) of the new keyframe to the previous one (None when
+    it was rejected and the odometry chain stood in, or without an odometry factor)."""
 
     poses: dict[int, np.ndarray] = dc_field(default_factory=dict)
     remap: tuple[int, ...] = ()
     shifts: dict[int, tuple[float, float]] = dc_field(default_factory=dict)
     solved: bool = False
     edges: tuple[tuple[int, int], ...] = ()
+    link: np.ndarray | None = None
 
     @property
     def loops(self) -> int:
         """How many verified loop closures were added."""
         return len(self.edges)
+
+
+@dataclass(frozen=True)
+class FactorRecord:
+    """One between factor as it entered the graph (before any solve re-stated it), for calibration checks
+    (:mod:`lrslam.evaluation.factors`): ``kind`` (``odometry``, ``field`` or ``loop``), keyframe ids ``i``, ``j``
+    (frame indices), the measurement ``T_i_j`` (4, 4) and its ``information`` (6, 6; right perturbation,
+    ``[rotation, translation]``)."""
+
+    kind: str
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
 
 
 class GraphBackend:
@@ -105,13 +122,15 @@ class GraphBackend:
         self._pose_losses = pose_losses if cfg.loop_field_check else None
         self._last: int | None = None
         self.n_loops = self.n_solves = self.n_loops_disputed = 0
+        self.measurements: list[FactorRecord] = []
 
     def state_dict(self) -> dict:
         """Factors (plain numpy, :meth:`PoseGraph.state`), the loop closer's keyframes, the frontend's chain since
         the last keyframe and the counters, for checkpoints."""
         return {"graph": self.graph.state(), "loop_closer": self.loop_closer.state_dict(),
                 "link": self.link.state_dict(), "last": self._last, "n_loops": self.n_loops,
-                "n_solves": self.n_solves, "n_loops_disputed": self.n_loops_disputed}
+                "n_solves": self.n_solves, "n_loops_disputed": self.n_loops_disputed,
+                "measurements": [vars(m).copy() for m in self.measurements]}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` output."""
@@ -121,6 +140,7 @@ class GraphBackend:
         self._last = state["last"]
         self.n_loops, self.n_solves = int(state["n_loops"]), int(state["n_solves"])
         self.n_loops_disputed = int(state["n_loops_disputed"])
+        self.measurements = [FactorRecord(**m) for m in state.get("measurements", [])]
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None:
         self.graph.add_keyframe(frame.index, T_w_c0)
@@ -136,38 +156,49 @@ class GraphBackend:
     def on_keyframe(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> Correction:
         """Add keyframe ``frame.index`` (its pose in ``poses``, every keyframe's current ``T_w_c``) with its
         factors; solve when a loop brings a real correction (or at every keyframe); return what to write back."""
-        loops = self._add_factors(frame, poses, information)
+        loops, link = self._add_factors(frame, poses, information)
         real = [lc for lc in loops if self._is_correction(lc)]
         if len(loops) > len(real):
             log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", frame.index,
                      len(loops) - len(real))
         edges = tuple((lc.i, lc.j) for lc in loops)
+        T_link = link.T_i_j if link is not None and link.source == "registration" else None
         if not (real or self.cfg.optimise == "every_keyframe"):
-            return Correction(edges=edges)
-        return self._solve(poses, edges)
+            return Correction(edges=edges, link=T_link)
+        return replace(self._solve(poses, edges), link=T_link)
 
-    def _add_factors(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> list:
-        """Steps 1-3: the new keyframe's field, frontend and loop factors; returns the loops kept."""
+    def _add_factors(self, frame: Frame, poses: dict[int, np.ndarray],
+                     information: np.ndarray | None) -> tuple[list, KeyframeLinkMeasurement | None]:
+        """Steps 1-3: the new keyframe's field, frontend and loop factors; returns the loops kept and the
+        frontend's keyframe-to-keyframe measurement."""
         i, j, factors = self._last, frame.index, self.cfg.factors
         self.graph.add_keyframe(j)
         # 1. Field factor: the trajectory's relative pose, with the tracker's information.
         if "field" in factors:
             info = information if information is not None else self._default_info
-            self.graph.add_field_relative(i, j, inv(poses[i]) @ poses[j], info)
+            self._add("field", i, j, inv(poses[i]) @ poses[j], info)
         # 2. Frontend factor: its own keyframe-to-keyframe estimate.
         link = self.link.measure(j, frame)
         if "odometry" in factors and link is not None:
-            self.graph.add_odometry(link.i, link.j, link.T_i_j, link.information)
+            self._add("odometry", link.i, link.j, link.T_i_j, link.information)
         # 3. Loops against earlier keyframes.
         loops = []
         if "loop" in factors:
             loops = self._agreed_by_field(self.loop_closer.detect(j, frame, poses), frame, poses)
             for lc in loops:
-                self.graph.add_loop(lc.i, lc.j, lc.T_i_j, lc.information)
+                self._add("loop", lc.i, lc.j, lc.T_i_j, lc.information)
         self.loop_closer.add_keyframe(j, frame)
         self._last = j
         self.n_loops += len(loops)
-        return loops
+        return loops, link
+
+    def _add(self, kind: str, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray) -> None:
+        """Add a between factor to the graph and to :attr:`measurements`."""
+        add = {"field": self.graph.add_field_relative, "odometry": self.graph.add_odometry,
+               "loop": self.graph.add_loop}[kind]
+        add(i, j, T_i_j, information)
+        self.measurements.append(FactorRecord(kind, int(i), int(j), np.array(T_i_j, dtype=np.float64),
+                                              np.array(information, dtype=np.float64)))
 
     def _solve(self, poses: dict[int, np.ndarray], edges: tuple[tuple[int, int], ...]) -> Correction:
         """Step 4: solve from the trajectory's poses, field factors re-stated from them (the graph never reverts

@@ -4,7 +4,8 @@
 Sequences (``--suite``):
 
 - ``synthetic``: a generated loop (150 frames by default) with Kinect-like depth noise plus a constant
-  Gaussian term (sigma = 1 cm);
+  Gaussian term (sigma = 1 cm), and a fast camera: an orbit at about 5.5 cm and 2.5 deg per frame
+  (``--orbit-frames``, default 72; same noise; ``lrslam synth --trajectory orbit --step-cm 6 --step-deg 2.4``);
 - ``real``: the real excerpts in ``../shared/data``, when present: TUM fr1/rpy (120 frames, every frame) and
   7-Scenes redkitchen (every 4th of 500 frames, ~3 cm / 6 deg apart); ``--stride 3`` multiplies those strides
   (three times the motion per frame).
@@ -122,6 +123,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--suite", choices=("synthetic", "real", "all"), default="all")
     ap.add_argument("--frames", type=int, default=150, help="synthetic loop length")
+    ap.add_argument("--orbit-frames", type=int, default=72, help="fast synthetic orbit length (0: none)")
     ap.add_argument("--data-seed", type=int, default=0, help="seed of the synthetic sequence")
     ap.add_argument("--seeds", type=int, default=3, help="field seeds per field / fused variant")
     ap.add_argument("--max-frames", type=int, default=None, help="truncate the real sequences")
@@ -153,6 +155,13 @@ def main() -> int:
         t, ok = _run(Path(seq), "synthetic", a.overrides, a, a.out / "synthetic")
         texts.append(t)
         oks.append(ok)
+        if a.orbit_frames:
+            seq = generate(a.out / "data" / f"room_orbit_{a.orbit_frames}", scene="room", trajectory="orbit",
+                           n_frames=a.orbit_frames, seed=a.data_seed, width=320, height=240, noise=noise, reuse=True,
+                           trans_step=0.06, rot_step_deg=2.4)
+            t, ok = _run(Path(seq), "synthetic", a.overrides, a, a.out / "synthetic-orbit")
+            texts.append(t)
+            oks.append(ok)
     if a.suite in ("real", "all"):
         root = Path(os.environ.get("LRSLAM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
         ov = list(a.overrides) + ([f"dataset.options.max_frames={a.max_frames}"] if a.max_frames else [])

@@ -38,6 +38,9 @@ def _summary_lines(metrics: dict, out: Path) -> list[str]:
     lines = [f"mode: {metrics['mode']}   frames: {metrics['n_frames']}   keyframes: {metrics['n_keyframes']}"
              f"   loop closures: {metrics['n_loop_closures']}   scene bound: {metrics['bound_source']}",
              _ate_line(metrics)]
+    if metrics.get("factor_chi2"):
+        lines.append("graph factors vs ground truth (chi2/dof, 1 = honest weights): " + ", ".join(
+            f"{k} {_num(v['chi2_per_dof_mean'], '.2f')} (n={v['n']})" for k, v in metrics["factor_chi2"].items()))
     if "mesh_accuracy_cm" in metrics:
         lines.append(f"mesh: accuracy {_num(metrics['mesh_accuracy_cm'], '.2f')} cm   completion "
                      f"{_num(metrics['mesh_completion_cm'], '.2f')} cm   completion ratio "

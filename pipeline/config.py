@@ -26,6 +26,7 @@ from lrslam.backend.loop_closure import LoopClosureConfig
 from lrslam.backend.policy import BackendConfig
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.frontend.keyframes import KeyframeConfig
+from lrslam.backend.frame_fusion import FusionConfig
 from lrslam.frontend.odometry import OdometryConfig
 
 __all__ = ["RunConfig", "ScheduleConfig", "OutputConfig", "DatasetSection", "PartsConfig",
@@ -128,6 +129,7 @@ class RunConfig(StrictModel):
     loop_closure: LoopClosureConfig = LoopClosureConfig()
     graph: GraphConfig = GraphConfig()
     backend: BackendConfig = BackendConfig()
+    fusion: FusionConfig = FusionConfig()
     schedule: ScheduleConfig = ScheduleConfig()
     output: OutputConfig = OutputConfig()
 
@@ -179,6 +181,8 @@ class RunConfig(StrictModel):
                        f"(device {self.field.device})")
         if p.backend == "graph":
             out.append(f"graph solved {self.backend.optimise.replace('_', ' ')}")
+        if self.fusion.per_frame and p.refiner == "field" and p.seeder == "odometry":
+            out.append("odometry and field fused at every frame by their measured noise")
         size = self.reader_options().resize
         out.append("images " + (f"resized to {size[0]}x{size[1]}" if size else "at their own size"))
         return "; ".join(out)
@@ -204,7 +208,10 @@ MODE_PRESETS: dict[str, dict[str, Any]] = {
     "fused": {"parts": {"seeder": "odometry", "refiner": "field", "keyframer": "policy", "backend": "graph"},
               # the odometry seed is a measurement, not a guess: keep the field's refinement only where it is better
               # (or at most 5 % worse on the same rays: gains within the loss noise still anchor the pose to the map)
-              "field": {"tracking": {"accept_if_better": True, "accept_tolerance": 0.05}}},
+              "field": {"tracking": {"accept_if_better": True, "accept_tolerance": 0.05}},
+              # every frame: the odometry's seed and the field's pose weighed by their measured noise
+              # (lrslam.backend.frame_fusion)
+              "fusion": {"per_frame": True}},
 }
 
 

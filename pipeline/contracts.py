@@ -8,7 +8,8 @@ no pose copies: they receive what they need from the runner's :class:`~lrslam.pi
 One frame (numbered as in the runner):
 
 1. ``Seeder.seed(frame, traj) -> Seed``           the frame's starting pose (+ the frontend's measurement)
-2. ``Refiner.refine(frame, seed) -> Refinement``  the field's refinement of it, with its information
+2. ``Refiner.refine(frame, seed) -> Refinement``  the field's refinement of it, with its information;
+   ``Fusion.fuse(...) -> FusedPose``               the two weighed by their measured noise (fused mode)
 3. ``Keyframer.is_keyframe(frame, T, traj)``       keyframe or not
 4. ``Mapper.map(...) -> {frame id: T_w_c}``        the field's mapping round (poses it refined)
 5. ``Backend.on_keyframe(...) -> Correction``      graph factors, loops, a solve: poses to write, keyframes to re-map
@@ -24,7 +25,8 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from lrslam.frame import Frame
-from lrslam.backend.policy import Correction
+from lrslam.backend.frame_fusion import FusedPose
+from lrslam.backend.policy import Correction, FactorRecord
 
 if TYPE_CHECKING:  # annotations only
     from lrslam.frontend.odometry import OdometryResult
@@ -129,12 +131,31 @@ class Mapper(Stateful, Protocol):
     def parameter_count(self) -> dict[str, int]: ...
 
 
+class Fusion(Stateful, Protocol):
+    """Per-frame fusion of the odometry's seed and the field's pose (:class:`lrslam.backend.frame_fusion.FrameFusion`)."""
+
+    def fuse(self, T_seed: np.ndarray, odometry_ok: bool, T_field: np.ndarray | None,
+             T_frontend: np.ndarray | None) -> FusedPose: ...
+
+    def start(self, T_w_c0: np.ndarray, T_frontend0: np.ndarray | None) -> None: ...
+
+    def blend(self, T_current: np.ndarray, T_field: np.ndarray) -> np.ndarray:
+        """A pose the field's mapper moved, moved by the field's share only."""
+
+    def on_keyframe(self, T_registration: np.ndarray | None) -> None:
+        """The last fused frame became a keyframe (``T_registration``: the frontend's direct registration of it to
+        the previous keyframe, :attr:`Correction.link`)."""
+
+    def sigmas(self) -> dict[str, float]: ...
+
+
 class Backend(Stateful, Protocol):
     """The keyframe pose graph and its policy (:class:`lrslam.backend.policy.GraphBackend`)."""
 
     n_loops: int
     n_solves: int
     n_loops_disputed: int
+    measurements: list[FactorRecord]   # every between factor as it was added (calibration checks)
 
     def start(self, frame: Frame, T_w_c0: np.ndarray) -> None: ...
 

@@ -69,6 +69,7 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
     The ATE is evaluated once (:func:`_evaluate`): ``metrics.json`` and the plot's legend show the same numbers."""
     # 1. Trajectories: the run's own, its seeds, the frontend's own estimate (when the run has a frontend).
     extra = _write_trajectories(out_dir, cfg, result, timestamps)
+    _write_factors(out_dir / "factors.npz", result.factors, timestamps)
     # 2. What the run was and how fast.
     metrics = _run_metrics(cfg, result, wall_s, bound, bound_src, frame_seconds)
     # 3. Mesh.
@@ -78,6 +79,7 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
     if cfg.output.evaluate:
         try:
             ates = _evaluate(metrics, seq, timestamps, result.poses, extra, mesh, cfg)
+            _factor_calibration(metrics, seq, timestamps, result.factors)
         except Exception as e:
             log.error("evaluation failed: %s", e)
             metrics["evaluation_error"] = str(e)
@@ -103,6 +105,30 @@ def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.
     if frontend is not None:
         write_tum(out_dir / "trajectory_frontend.txt", timestamps, frontend, header="frontend-only poses T_w_c")
     return {"seed": seed, "frontend": frontend}
+
+
+def _write_factors(path: Path, factors, timestamps) -> None:
+    """``factors.npz``: every pose-graph between factor as it was added (``kind``, frame indices ``i``, ``j``,
+    their timestamps ``t_i``, ``t_j`` (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6)); nothing without a
+    graph."""
+    if not factors:
+        return
+    ts = np.asarray(timestamps, dtype=np.float64)
+    i = np.array([f.i for f in factors], dtype=np.int64)
+    j = np.array([f.j for f in factors], dtype=np.int64)
+    np.savez_compressed(path, kind=np.array([f.kind for f in factors]), i=i, j=j, t_i=ts[i], t_j=ts[j],
+                        T_i_j=np.stack([f.T_i_j for f in factors]),
+                        information=np.stack([f.information for f in factors]))
+
+
+def _factor_calibration(metrics: dict, seq, timestamps, factors) -> None:
+    """Normalised residuals (chi2 / 6) of each factor kind against ground truth into ``metrics["factor_chi2"]``
+    (:mod:`lrslam.evaluation.factors`)."""
+    from lrslam.evaluation.factors import run_factor_chi2
+
+    res = run_factor_chi2(factors, timestamps, seq)
+    if res:
+        metrics["factor_chi2"] = {k: v.to_dict() for k, v in res.items()}
 
 
 def _run_metrics(cfg, result, wall_s, bound, bound_src, frame_seconds: np.ndarray | None) -> dict:

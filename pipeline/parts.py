@@ -24,7 +24,7 @@ import numpy as np
 from lrslam.frame import Frame
 from lrslam.geometry import constant_velocity, diagonal_information, pose_error, pose_from_tum, pose_to_tum
 from lrslam.pipeline.config import RunConfig
-from lrslam.pipeline.contracts import Backend, Keyframer, Mapper, Refinement, Refiner, Seed, Seeder
+from lrslam.pipeline.contracts import Backend, Fusion, Keyframer, Mapper, Refinement, Refiner, Seed, Seeder
 from lrslam.pipeline.trajectory import Trajectory
 
 if TYPE_CHECKING:  # annotations only: torch, GTSAM and Open3D load when a part that needs them is built
@@ -287,6 +287,7 @@ class Parts:
     refiner: Refiner | None = None
     mapper: Mapper | None = None
     backend: Backend | None = None
+    fusion: Fusion | None = None
 
 
 def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray) -> Parts:
@@ -302,7 +303,14 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
                  FieldRefiner(field) if field is not None else None,
                  None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
                                                         (sc.background_wait_m, sc.background_wait_deg)),
-                 _backend(cfg, field) if p.backend == "graph" else None)
+                 _backend(cfg, field) if p.backend == "graph" else None,
+                 _fusion(cfg) if field is not None and p.seeder == "odometry" and cfg.fusion.per_frame else None)
+
+
+def _fusion(cfg: RunConfig) -> Fusion:
+    from lrslam.backend.frame_fusion import FrameFusion
+
+    return FrameFusion(cfg.fusion)
 
 
 def _seeder(cfg: RunConfig, K: np.ndarray, height: int, width: int, with_field: bool) -> Seeder:

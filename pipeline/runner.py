@@ -25,6 +25,7 @@ import numpy as np
 from lrslam.errors import InputError
 from lrslam.frame import Frame
 from lrslam.pipeline.config import RunConfig
+from lrslam.backend.policy import FactorRecord
 from lrslam.pipeline.contracts import Refinement, Seed
 from lrslam.pipeline.parts import Parts, build_parts
 from lrslam.pipeline.timing import StageTimer
@@ -54,6 +55,7 @@ class FrameRecord:
     loop_edges: list[tuple[int, int]] = dc_field(default_factory=list)   # (i, j) keyframe ids of the loops added
     moved: dict[int, tuple[float, float]] = dc_field(default_factory=dict)  # {kf: (m, deg)} the graph moved
     moved_from: dict[int, tuple[float, float, float]] = dc_field(default_factory=dict)  # {kf: xyz (m) before}
+    fusion_gain: tuple[float, float] | None = None   # the field's weight (rotation, translation), fused mode
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,7 @@ class SlamResult:
     parameters: dict | None = None
     device: str | None = None
     timestamps: np.ndarray | None = None
+    factors: tuple[FactorRecord, ...] = ()
 
 
 class SlamRunner:
@@ -118,6 +121,8 @@ class SlamRunner:
         if p.backend is not None:
             with self.timer("graph"):
                 p.backend.start(frame, T0)
+        if p.fusion is not None:
+            p.fusion.start(T0, p.seeder.frontend_pose())
         self.traj.add(T0, is_keyframe=True)
         return self._record(FrameRecord(frame.index, keyframe=True), Seed(T0), T0)
 
@@ -141,12 +146,14 @@ class SlamRunner:
             p.backend.on_frame(seed.odometry)
 
         # 2. refine
-        T, information = seed.T_w_c, None
+        T, information, ref = seed.T_w_c, None, None
         if p.refiner is not None and rec.has_depth:
             with self.timer("refine"):
                 ref = p.refiner.refine(frame, seed)
             T, information = ref.T_w_c, ref.information
             self._note_refinement(rec, ref)
+        if p.fusion is not None:
+            T = self._fuse(seed, ref, rec)
 
         # 3. keyframe
         with self.timer("keyframe"):
@@ -165,6 +172,19 @@ class SlamRunner:
             self._graph_and_remap(frame, information, rec)
         return self._record(rec, seed, self.traj.pose(idx))
 
+    def _fuse(self, seed: Seed, ref: Refinement | None, rec: FrameRecord) -> np.ndarray:
+        """Step 2b: the odometry's seed and the field's pose (``ref``; None for a frame without depth) weighed by
+        their measured noise. A refinement that started from the constant-velocity guess (the field judged the
+        odometry broken) fuses with that guess, as a frame without odometry."""
+        start = ref.start if ref is not None else 0
+        odometry_ok = seed.ok and start == 0
+        T_seed = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
+        T_field = ref.T_w_c if ref is not None and ref.ok and ref.accepted else None
+        fused = self.parts.fusion.fuse(T_seed, odometry_ok, T_field,
+                                       self.parts.seeder.frontend_pose() if seed.ok else None)
+        rec.fusion_gain = fused.gain
+        return fused.T_w_c
+
     @staticmethod
     def _note_refinement(rec: FrameRecord, ref: Refinement) -> None:
         rec.refine_ok, rec.refine_accepted = ref.ok, ref.accepted
@@ -180,10 +200,12 @@ class SlamRunner:
                 self._write_mapped(self.parts.mapper.collect())
 
     def _write_mapped(self, refined: dict) -> None:
-        """Mapper-optimised poses (the round's frame and window keyframes) back into the trajectory."""
+        """Mapper-optimised poses (the round's frame and window keyframes) back into the trajectory (in fused mode
+        by the field's share only, :meth:`lrslam.backend.frame_fusion.FrameFusion.blend`)."""
+        fusion = self.parts.fusion
         for fid, T_opt in refined.items():
             if 0 <= fid < len(self.traj):
-                self.traj.set_pose(fid, T_opt)
+                self.traj.set_pose(fid, T_opt if fusion is None else fusion.blend(self.traj.pose(fid), T_opt))
 
     def _graph_and_remap(self, frame: Frame, information: np.ndarray | None, rec: FrameRecord) -> None:
         """Steps 5-6: the backend's verdict on the new keyframe, its corrections written into the trajectory,
@@ -191,6 +213,8 @@ class SlamRunner:
         p = self.parts
         with self.timer("graph"):
             corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information)
+        if p.fusion is not None:
+            p.fusion.on_keyframe(corr.link)
         rec.loops, rec.solved = corr.loops, corr.solved
         rec.loop_edges = [(int(i), int(j)) for i, j in corr.edges]
         if not corr.solved:
@@ -230,6 +254,7 @@ class SlamRunner:
             "seeder": p.seeder.state_dict(), "keyframer": p.keyframer.state_dict(),
             "field": p.mapper.state_dict() if p.mapper is not None else None,
             "backend": p.backend.state_dict() if p.backend is not None else None,
+            "fusion": p.fusion.state_dict() if p.fusion is not None else None,
             "seeds": np.stack(self._seeds) if self._seeds else np.zeros((0, 4, 4)),
             "frontend": np.stack(self._frontend) if self._frontend else None,
             "records": [asdict(r) for r in self._records],
@@ -239,7 +264,8 @@ class SlamRunner:
     def restore(self, state: dict) -> None:
         """Continue from :meth:`checkpoint` output (instead of :meth:`start`)."""
         p = self.parts
-        if (state["field"] is None) != (p.mapper is None) or (state["backend"] is None) != (p.backend is None):
+        if ((state["field"] is None) != (p.mapper is None) or (state["backend"] is None) != (p.backend is None)
+                or (state.get("fusion") is None) != (p.fusion is None)):
             raise InputError("checkpoint: it was saved by a runner built from other parts")
         self.traj.load_state_dict(state["trajectory"])
         p.seeder.load_state_dict(state["seeder"])
@@ -248,6 +274,8 @@ class SlamRunner:
             p.mapper.load_state_dict(state["field"])
         if p.backend is not None:
             p.backend.load_state_dict(state["backend"])
+        if p.fusion is not None:
+            p.fusion.load_state_dict(state["fusion"])
         self._seeds = [np.asarray(T, dtype=np.float64) for T in state["seeds"]]
         self._frontend = [] if state["frontend"] is None else [np.asarray(T, dtype=np.float64)
                                                                for T in state["frontend"]]
@@ -282,10 +310,12 @@ class SlamRunner:
             "frames_without_depth": sum(not r.has_depth for r in recs),
             "mapping_poses_reverted": p.mapper.reverted_poses if p.mapper is not None else 0,
             "seeds_overruled_by_field": sum(r.refine_start > 0 for r in recs),
+            "fusion_sigmas": p.fusion.sigmas() if p.fusion is not None else None,
             "refine_iters_mean": float(np.mean([r.refine_iters for r in recs if r.refine_ok is not None] or [0])),
         }
         return SlamResult(
             poses=self.traj.poses(), keyframe_ids=tuple(self.traj.keyframe_ids()), seed_poses=np.stack(self._seeds),
             frontend_poses=np.stack(self._frontend) if self._frontend else None, records=recs, counts=counts,
             mesh=field_mesh, parameters=p.mapper.parameter_count() if p.mapper is not None else None,
-            device=p.mapper.device if p.mapper is not None else None)
+            device=p.mapper.device if p.mapper is not None else None,
+            factors=tuple(p.backend.measurements) if p.backend is not None else ())

@@ -62,7 +62,7 @@ def test_parts_are_typed_by_their_protocols_and_never_probed():
 
     types = {f.name: str(f.type) for f in fields(Parts)}
     assert types == {"seeder": "Seeder", "keyframer": "Keyframer", "refiner": "Refiner | None",
-                     "mapper": "Mapper | None", "backend": "Backend | None"}
+                     "mapper": "Mapper | None", "backend": "Backend | None", "fusion": "Fusion | None"}
     for name in ("Seeder", "Keyframer", "Refiner", "Mapper", "Backend"):
         assert getattr(contracts, name)._is_protocol, name
     for path, tree in _modules("pipeline", "backend"):

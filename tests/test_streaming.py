@@ -53,7 +53,10 @@ def test_frame_by_frame_equals_lrslam_run_bit_for_bit(seq_dir, tmp_path, mode):
     lines = lambda p: [x for x in p.read_text().splitlines() if not x.startswith("#")]  # noqa: E731
     assert lines(tmp_path / "stream.txt") == lines(tmp_path / "run" / "trajectory.txt")
     assert len(poses_run) == len(seq) and np.array_equal(out.poses[-1], slam.poses()[-1])
-    # a different seed is a different run in field modes (the test can tell runs apart)
+    # a different seed is a different run in field mode (the test can tell runs apart; fused mode takes the
+    # odometry alone over its first keyframe gaps, FusionConfig.warmup_keyframes)
+    if mode != "field":
+        return
     other = build_config("synthetic", mode=mode, overrides=TINY + ["seed=5", "deterministic=true"])
     s2 = _slam(other, seq, first)
     for i in range(4):

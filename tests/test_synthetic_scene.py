@@ -128,7 +128,8 @@ def test_trajectories_stay_inside_at_hand_held_speeds(scenes, kind, name):
         assert _distance(sc, pos).min() >= 0.5
         dt, dr = motion_per_frame(T)
         assert 0.004 <= dt.mean() <= 0.015 and dt.max() <= 0.02, (dt.mean(), dt.max())
-        assert 0.4 <= dr.mean() <= 1.5 and dr.max() <= 2.0, (dr.mean(), dr.max())
+        # the orbit turns its heading at 0.4x its position angle: it travels far per degree turned
+        assert (0.3 if kind == "orbit" else 0.4) <= dr.mean() <= 1.5 and dr.max() <= 2.0, (dr.mean(), dr.max())
         # OpenCV axes: the optical axis looks at the room (not at the ceiling), image "down" points down
         assert np.all(T[:, 2, 2] < np.sin(np.radians(15.0)))
         assert np.all(T[:, 2, 1] < 0)

@@ -24,7 +24,7 @@ from lrslam.errors import InputError
 
 __all__ = ["TRAJECTORIES", "camera_region", "make_trajectory", "look_rotation", "motion_per_frame"]
 
-TRAJECTORIES = ("circle", "helix", "random_walk", "loop")
+TRAJECTORIES = ("circle", "helix", "random_walk", "loop", "orbit")
 
 # A curve maps a parameter array (M,) to positions (M, 3) and yaw/pitch/roll (M, 3) in radians.
 Curve = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -96,7 +96,9 @@ def _retime(curve: Curve, s_max: float, n_frames: int, step: float, trans_step: 
     return _poses(*curve(s_frames))
 
 
-def _circle(region: np.ndarray, rng: np.random.Generator, helix: bool) -> Curve:
+def _circle(region: np.ndarray, rng: np.random.Generator, helix: bool, yaw_rate: float | None = None) -> Curve:
+    """circle / helix; ``yaw_rate``: an orbit whose heading turns ``yaw_rate`` times as fast as its position
+    angle (starting inwards), so that it travels far per degree turned (a translation-heavy fast camera)."""
     c = region.mean(axis=1)
     half = 0.5 * (region[:, 1] - region[:, 0])
     rx, ry = 0.85 * half[0], 0.85 * half[1]
@@ -109,7 +111,7 @@ def _circle(region: np.ndarray, rng: np.random.Generator, helix: bool) -> Curve:
         z = np.full_like(s, c[2]) if not helix else c[2] - hz * np.cos(0.5 * s)  # up in one turn, down in the next
         pos = np.stack([c[0] + rx * np.cos(th), c[1] + ry * np.sin(th), z], axis=-1)
         # circle: look inwards across the room; helix: look outwards at the nearer walls and furniture
-        yaw = th + (np.pi if not helix else 0.0)
+        yaw = th + (np.pi if not helix else 0.0) if yaw_rate is None else theta0 + np.pi + yaw_rate * s
         ypr = np.stack([yaw, np.full_like(s, pitch), np.zeros_like(s)], axis=-1)
         return pos, ypr
 
@@ -171,7 +173,9 @@ def make_trajectory(kind: str, n_frames: int, scene_bound: np.ndarray, seed: int
             ``helix`` (same ellipse, looking outwards at the walls while the height goes up over one turn and
             down over the next), ``random_walk`` (smooth hand-held wandering through random knots with random
             yaw/pitch/roll), ``loop`` (one closed lap sized so that n_frames fit at the nominal speed -- or
-            several laps when the room is too small -- whose last frame is one step before the first).
+            several laps when the room is too small -- whose last frame is one step before the first), ``orbit``
+            (the circle's ellipse, heading turning at 0.4x the rate of the position angle: with
+            ``trans_step=0.06, rot_step_deg=2.4`` a fast, translation-heavy camera).
         n_frames: number of poses (>= 2).
         scene_bound: (3, 2) metres, the scene's ``bound``; cameras stay in :func:`camera_region` of it.
         seed: random seed (start angle, knots, ...); same inputs give the same poses.
@@ -189,8 +193,9 @@ def make_trajectory(kind: str, n_frames: int, scene_bound: np.ndarray, seed: int
     def rng() -> np.random.Generator:  # a fresh, identical stream for every candidate curve
         return np.random.default_rng([int(seed), TRAJECTORIES.index(kind)])
 
-    if kind in ("circle", "helix"):
-        curve = _circle(region, rng(), helix=kind == "helix")
+    if kind in ("circle", "helix", "orbit"):
+        # orbit: heading turns at 0.4x the position angle: about 2.5 cm per degree in the 4 x 3 m room
+        curve = _circle(region, rng(), helix=kind == "helix", yaw_rate=0.4 if kind == "orbit" else None)
         s_max = 2 * np.pi
         while (total := _metric(curve, np.linspace(0.0, s_max, 2000), *steps)[-1]) < n_frames:
             s_max *= 1.2 * n_frames / total

@@ -42,9 +42,11 @@ _OUTPUTS = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "scene.ya
 
 
 def sequence_metadata(scene: Scene, trajectory: str, n_frames: int, K: np.ndarray, width: int, height: int,
-                      noise: NoiseConfig) -> dict:
-    """The ``scene.yaml`` mapping (plain Python types)."""
-    return {
+                      noise: NoiseConfig, steps: tuple[float, float] = (0.01, 1.0)) -> dict:
+    """The ``scene.yaml`` mapping (plain Python types); ``steps``: nominal motion per frame (m, deg), written
+    only when it is not the default (older sequences stay identical)."""
+    speed = {} if tuple(steps) == (0.01, 1.0) else {"step": {"m": float(steps[0]), "deg": float(steps[1])}}
+    return speed | {
         "generator": GENERATOR,
         "scene": scene.name,
         "seed": int(scene.seed),
@@ -92,12 +94,13 @@ def _write_list(path: Path, kind: str, stamps: list[str]) -> None:
 
 def write_sequence(out_dir: str | Path, scene: Scene, poses: np.ndarray, K: np.ndarray, width: int,
                    height: int, noise: NoiseConfig | None = None, fps: float = 30.0, trajectory: str = "custom",
-                   antialias: int = 2, show_progress: bool = True) -> Path:
+                   antialias: int = 2, show_progress: bool = True, steps: tuple[float, float] = (0.01, 1.0)) -> Path:
     """Render ``poses`` (N, 4, 4) camera-to-world (OpenCV axes) of ``scene`` with intrinsics K (3, 3) at
     width x height and write the sequence (layout in the module docstring) to ``out_dir``; returns it.
 
     A folder that already holds a synthetic sequence is overwritten; any other non-empty folder is refused
-    (InputError). ``noise`` defaults to noise free; ``trajectory`` is only recorded in scene.yaml.
+    (InputError). ``noise`` defaults to noise free; ``trajectory`` and ``steps`` (nominal motion per frame, m and
+    deg) are only recorded in scene.yaml.
     """
     import cv2
     from tqdm import tqdm
@@ -124,7 +127,8 @@ def write_sequence(out_dir: str | Path, scene: Scene, poses: np.ndarray, K: np.n
     stamps = np.array([float(t) for t in names])
     write_tum(out_dir / "groundtruth.txt", stamps, poses, header="timestamp tx ty tz qx qy qz qw (T_w_c)")
     scene.export_mesh(out_dir / "gt_mesh.ply")
-    save_yaml(out_dir / "scene.yaml", sequence_metadata(scene, trajectory, len(poses), K, width, height, noise))
+    save_yaml(out_dir / "scene.yaml", sequence_metadata(scene, trajectory, len(poses), K, width, height, noise,
+                                                            steps))
 
     # 2. frames: render, add noise, write 8-bit RGB and 16-bit depth PNGs
     renderer = Renderer(scene, K, width, height, antialias)
@@ -162,8 +166,11 @@ def _complete(out_dir: Path, meta: dict, fps: float) -> bool:
 
 def generate(out_dir: str | Path, scene: str = "room", trajectory: str = "circle", n_frames: int = 60,
              seed: int = 0, width: int = 320, height: int = 240, noise: NoiseConfig | None = None,
-             show_progress: bool = True, fps: float = 30.0, reuse: bool = True) -> Path:
+             show_progress: bool = True, fps: float = 30.0, reuse: bool = True, trans_step: float = 0.01,
+             rot_step_deg: float = 1.0) -> Path:
     """Make scene + trajectory (same seed) and write the sequence to ``out_dir``; returns the path.
+    ``trans_step`` (m), ``rot_step_deg``: the camera's nominal motion per frame
+    (:func:`~lrslam.datasets.synth.trajectories.make_trajectory`; 0.06 and 2.4 make a fast camera).
 
     Intrinsics: :func:`~lrslam.datasets.synth.render.default_intrinsics` (fx = fy = 260 at 320 x 240).
     With ``reuse`` a folder that already holds the identical, complete sequence (same scene.yaml) is returned
@@ -176,10 +183,11 @@ def generate(out_dir: str | Path, scene: str = "room", trajectory: str = "circle
     if width < 16 or height < 16:
         raise InputError(f"image size must be at least 16 x 16, got {width} x {height}")
     sc = make_scene(scene, seed)
-    poses = make_trajectory(trajectory, n_frames, sc.bound, seed)
+    poses = make_trajectory(trajectory, n_frames, sc.bound, seed, trans_step, rot_step_deg)
     K = default_intrinsics(width, height)
-    if reuse and _complete(out_dir, sequence_metadata(sc, trajectory, n_frames, K, width, height, noise), fps):
+    meta = sequence_metadata(sc, trajectory, n_frames, K, width, height, noise, (trans_step, rot_step_deg))
+    if reuse and _complete(out_dir, meta, fps):
         log.info("%s already holds this sequence; reusing it", out_dir)
         return out_dir
-    return write_sequence(out_dir, sc, poses, K, width, height, noise, fps=fps, trajectory=trajectory,
+    return write_sequence(out_dir, sc, poses, K, width, height, noise, fps=fps, trajectory=trajectory, steps=(trans_step, rot_step_deg),
                           show_progress=show_progress)
