@@ -27,7 +27,6 @@ Poses are 4x4 float64 ``T_w_c``.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,8 +36,6 @@ from lrslam.config import StrictModel
 from lrslam.geometry import exp_se3, inv, log_se3
 
 __all__ = ["FusionConfig", "NoiseEstimate", "FrameFusion", "FusedPose"]
-
-log = logging.getLogger(__name__)
 
 PAIRS = ("field-registration", "chain-registration")
 

@@ -101,7 +101,6 @@ def main() -> int:
         if k % 20 == 0:
             print(f"  frame {k}/{n}", file=sys.stderr, flush=True)
     result = runner.finish(mesh=False)
-    print(f"recorded {len(recorded)} per-frame measurements", file=sys.stderr)
     gt_by_index = {k: gt[k] for k in range(n) if np.all(np.isfinite(gt[k]))}
     rows = factor_chi2(recorded, gt_by_index) | factor_chi2(result.factors, gt_by_index)
     print(f"\n{a.sequence.name} ({preset}{', ' + ' '.join(a.overrides) if a.overrides else ''}), {n} frames")

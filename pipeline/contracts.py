@@ -48,6 +48,10 @@ class Seed:
     note: str = ""
     alternatives: tuple[np.ndarray, ...] = ()
 
+    def candidate(self, k: int) -> np.ndarray:
+        """Starting pose ``k`` (4, 4): 0 the seed's ``T_w_c``, k > 0 ``alternatives[k - 1]``."""
+        return self.T_w_c if k == 0 else self.alternatives[k - 1]
+
 
 @dataclass(frozen=True)
 class Refinement:

@@ -135,7 +135,7 @@ class FieldRefiner:
 
     def refine(self, frame: Frame, seed: Seed) -> Refinement:
         start, note = self._start(frame, seed)
-        T0 = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
+        T0 = seed.candidate(start)
         res = self.field.track(frame.rgb, frame.depth, T0)
         if not res.ok:
             return Refinement(T0, False, False, None, f"field tracking fell back to its starting pose: {res.reason}",

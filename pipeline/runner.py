@@ -178,9 +178,8 @@ class SlamRunner:
         odometry broken) fuses with that guess, as a frame without odometry."""
         start = ref.start if ref is not None else 0
         odometry_ok = seed.ok and start == 0
-        T_seed = seed.T_w_c if start == 0 else seed.alternatives[start - 1]
         T_field = ref.T_w_c if ref is not None and ref.ok and ref.accepted else None
-        fused = self.parts.fusion.fuse(T_seed, odometry_ok, T_field,
+        fused = self.parts.fusion.fuse(seed.candidate(start), odometry_ok, T_field,
                                        self.parts.seeder.frontend_pose() if seed.ok else None)
         rec.fusion_gain = fused.gain
         return fused.T_w_c
