@@ -177,6 +177,29 @@ def test_default_preset_follows_the_dataset_and_the_device(tmp_path):
     assert default_preset(tmp_path / "nothing-here", cuda=False)[0] is None
 
 
+def test_every_rgbd_dataset_gets_the_one_set_of_cpu_settings(tmp_path):
+    """On a CPU a Replica or ScanNet folder gets its ``-cpu`` preset, and every ``-cpu`` dataset preset runs each
+    mode with the same field, fusion, schedule and backend settings as ``tum-cpu`` (rgbd-cpu's): a dataset preset
+    says what the data is, not how hard to work."""
+    from lrslam.pipeline.config import build_config
+    from lrslam.pipeline.config_source import default_preset
+
+    (tmp_path / "replica" / "results").mkdir(parents=True)
+    (tmp_path / "scannet" / "color").mkdir(parents=True)
+    (tmp_path / "scannet" / "depth").mkdir()
+    assert default_preset(tmp_path / "replica", cuda=False)[0] == "replica-cpu"
+    assert default_preset(tmp_path / "scannet", cuda=False)[0] == "scannet-cpu"
+    assert default_preset(tmp_path / "replica", cuda=True)[0] == "replica"
+    work = ("field", "fusion", "schedule", "backend", "keyframes", "graph")
+    for mode in ("field", "fused"):
+        ref = build_config("tum-cpu", mode=mode).model_dump(mode="json")
+        for preset in ("7scenes-cpu", "rosbag-cpu", "replica-cpu", "scannet-cpu"):
+            cfg = build_config(preset, mode=mode).model_dump(mode="json")
+            for key in work:
+                same = {k: v for k, v in cfg[key].items() if k != "loop_field_check"}
+                assert same == {k: v for k, v in ref[key].items() if k != "loop_field_check"}, (preset, mode, key)
+
+
 def test_dataset_preset_settings_per_mode(tmp_path):
     """A dataset preset's ``modes: {<mode>: ...}`` applies to that mode only, over the preset's own settings
     and under user overrides; an unknown mode name there is a one-line error naming the preset."""
