@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
+from lrslam.backend.calibration import GapNoise
 from lrslam.config import StrictModel
 from lrslam.geometry import exp_se3, inv, log_se3
 
@@ -85,12 +86,16 @@ class NoiseEstimate:
         """``{"field", "odometry"}`` -> variance (2,) over a keyframe gap: the prior's until both pairs have
         ``warmup_keyframes`` gaps, the data's alone after."""
         c = self.cfg
-        if self.counts.min() < c.warmup_keyframes:
+        if not self.measured():
             return {"field": np.array([np.radians(c.prior_field_sigma_deg) ** 2, c.prior_field_sigma_m ** 2]),
                     "odometry": np.array([np.radians(c.prior_odometry_sigma_deg) ** 2, c.prior_odometry_sigma_m ** 2])}
         floor = np.array([np.radians(c.min_sigma_deg) ** 2, c.min_sigma_m ** 2])
         d_fr, d_cr = self.sums / self.counts[:, None]
         return {"field": np.maximum(d_fr - d_cr / 2, floor), "odometry": np.maximum(d_cr / 2, floor)}
+
+    def measured(self) -> bool:
+        """Whether both pairs have ``warmup_keyframes`` gaps (the variances are the data's, not the prior's)."""
+        return bool(self.counts.min() >= self.cfg.warmup_keyframes)
 
     def gap_frames(self) -> float:
         """Mean keyframe gap in frames (1 before the first)."""
@@ -197,12 +202,27 @@ class FrameFusion:
         """The last fused frame is a keyframe: add its gap's estimates to the noise estimate
         (``T_registration``: the frontend's direct registration of it to the previous keyframe, None when
         there was none) and make it the reference of the next gap."""
-        field = None if self._field is None or self._kf_field is None else inv(self._kf_field) @ self._field
+        field = self.field_motion()
         chain = (inv(self._kf_frontend) @ self._frontend
                  if self._chain_ok and self._kf_frontend is not None and self._frontend is not None else None)
         self.noise.add(field, chain, T_registration, self._frames)
         self._kf_field, self._kf_frontend = self._field, self._frontend
         self._chain_ok, self._frames = self._frontend is not None, 0
+
+    def field_pose(self) -> np.ndarray | None:
+        """The field's own tracked pose ``T_w_c`` (4, 4) of the last fused frame (before fusion); None when its
+        tracking failed or was not kept."""
+        return None if self._field is None else self._field.copy()
+
+    def field_motion(self) -> np.ndarray | None:
+        """The field's own motion ``T_i_j`` (4, 4) from the last keyframe i to the last fused frame (its tracked
+        poses, before fusion); None when the field failed on either."""
+        return None if self._field is None or self._kf_field is None else inv(self._kf_field) @ self._field
+
+    def gap_noise(self) -> GapNoise:
+        """The current :class:`~lrslam.backend.calibration.GapNoise` (the factors' calibration)."""
+        v = self.noise.variances()
+        return GapNoise(v["odometry"].copy(), v["field"].copy(), self.noise.measured(), self.variances()[2])
 
     def sigmas(self) -> dict[str, float]:
         """The current estimate: standard deviations per axis over a keyframe gap (``field_deg``, ``field_m``,

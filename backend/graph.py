@@ -27,7 +27,7 @@ from pydantic import Field
 from lrslam.backend.conversions import gaussian_from_information, key, pose_to_gtsam, robust_noise, values_to_dict
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
-from lrslam.geometry import diagonal_information
+from lrslam.geometry import between_residual, diagonal_information, inv
 
 __all__ = ["GraphConfig", "PoseGraph"]
 
@@ -151,6 +151,31 @@ class PoseGraph:
                     f.information = np.asarray(information, dtype=np.float64).copy()
                 return True
         return False
+
+    def set_information(self, kind: FactorKind, i: int, j: int, information: np.ndarray) -> bool:
+        """Replace the information (6, 6) of the existing ``kind`` factor ``i``-``j`` (e.g. calibrated from the
+        run's measured noise). Returns False when there is no such factor. Not with ``isam2``."""
+        for f in self._factors:
+            if f.kind == kind and (f.i, f.j) == (int(i), int(j)):
+                return self.set_measurement(kind, i, j, f.T, information)
+        return False
+
+    def remove_loop(self, i: int, j: int) -> bool:
+        """Remove the loop factor ``i``-``j`` (rejected by the graph's consistency check). Returns False when there
+        is none. Not with ``isam2``."""
+        if self.cfg.optimiser == "isam2":
+            raise InputError("pose graph: remove_loop needs optimiser lm or gnc")
+        n = len(self._factors)
+        self._factors = [f for f in self._factors if not (f.kind == "loop" and (f.i, f.j) == (int(i), int(j)))]
+        self._constrained = {k for f in self._factors for k in (f.i, f.j)}
+        return len(self._factors) < n
+
+    def loop_chi2(self, poses: dict[int, np.ndarray]) -> list[tuple[int, int, float]]:
+        """``[(i, j, chi2)]`` of every loop factor at ``poses`` (``{kf_id: T_w_c}``): its normalised squared residual
+        ``e^T Lambda e`` (:func:`lrslam.geometry.between_residual`; chi-square with 6 degrees of freedom for a loop
+        consistent with the rest of the graph)."""
+        return [(f.i, f.j, between_residual(f.T, f.information, inv(poses[f.i]) @ poses[f.j])[1])
+                for f in self._factors if f.kind == "loop" and f.i in poses and f.j in poses]
 
     def _check(self, kind: FactorKind, i: int, j: int, T: np.ndarray, information: np.ndarray):
         what = f"pose graph: {kind} factor {i}-{j}"

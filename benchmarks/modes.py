@@ -8,7 +8,9 @@ Sequences (``--suite``):
   (``--orbit-frames``, default 72; same noise; ``lrslam synth --trajectory orbit --step-cm 6 --step-deg 2.4``);
 - ``real``: the real excerpts in ``../shared/data``, when present: TUM fr1/rpy (120 frames, every frame) and
   7-Scenes redkitchen (every 4th of 500 frames, ~3 cm / 6 deg apart); ``--stride 3`` multiplies those strides
-  (three times the motion per frame).
+  (three times the motion per frame); and TUM fr1/xyz in full (798 frames) when ``--tum-full DIR`` (or the
+  ``LRSLAM_TUM_FULL`` environment variable) names a folder holding ``rgbd_dataset_freiburg1_xyz`` (kept outside
+  the repo; skipped with one line when absent; not strided).
 
 Per sequence: ``field`` and ``fused`` run once per seed (``--seeds``, default 3: the field's ray sampling is
 random), ``frontend`` once (Open3D odometry is deterministic: its spread is 0 by construction). The table
@@ -71,8 +73,11 @@ def _summaries(results: dict[str, dict]) -> dict[str, dict]:
         v["ate"] = ates
         v["errors"] = [m["error"] for m in v["runs"] if "error" in m]
         v["mean"] = float(ates.mean()) if len(ates) else float("nan")
+        loops = [m["loops"] for m in ok if m.get("loops")]
+        v["loops"] = ({k: float(np.mean([lp[k] for lp in loops])) for k in loops[0]} if loops else None)
         for key in ("fpt_s", "fpt_first_third_s", "fpt_last_third_s", "n_keyframes", "n_loop_closures",
-                    "n_graph_solves", "n_remaps", "refinements_rejected", "frontend_ate_rmse_cm"):
+                    "n_graph_solves", "n_remaps", "refinements_rejected", "frontend_ate_rmse_cm",
+                    "online_ate_rmse_cm"):
             vals = [m[key] for m in ok if m.get(key) is not None]
             v[key] = float(np.mean(vals)) if vals else None
     return out
@@ -82,19 +87,29 @@ def _fmt(x, f="{:.2f}") -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f.format(x)
 
 
+def _loops(lp: dict | None) -> str:
+    """``proposed / unverified, disputed, inconsistent`` (means over seeds) or ``-`` without a loop closer."""
+    if not lp:
+        return "-"
+    return (f"{lp['proposed']:.0f} / {lp['unverified']:.0f}, {lp['disputed']:.0f}, {lp['inconsistent']:.0f}")
+
+
 def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
     """Markdown table + the promise check for one sequence."""
     s = _summaries(results)
     lines = [f"## {title}", "",
-             "| variant | ATE RMSE cm: mean | spread | per seed | s/frame | first / last third | keyframes | "
-             "loops | solves | re-maps | refinements rejected |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| variant | ATE RMSE cm: mean | spread | per seed | before final refinement | s/frame | first / last third | keyframes | "
+             "loops kept | loops proposed / rejected (registration, map, graph) | solves | re-maps | "
+             "refinements rejected |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, v in s.items():
         a = v["ate"]
         spread = f"{a.min():.2f}-{a.max():.2f}" if len(a) else "-"
         per = ", ".join(f"{x:.2f}" for x in a) + (f" ({len(v['errors'])} failed)" if v["errors"] else "")
         thirds = f"{_fmt(v['fpt_first_third_s'], '{:.3f}')} / {_fmt(v['fpt_last_third_s'], '{:.3f}')}"
-        lines.append(f"| {name} | {_fmt(v['mean'])} | {spread} | {per} | {_fmt(v['fpt_s'], '{:.3f}')} | {thirds} | "
+        lines.append(f"| {name} | {_fmt(v['mean'])} | {spread} | {per} | {_fmt(v['online_ate_rmse_cm'])} | "
+                     f"{_fmt(v['fpt_s'], '{:.3f}')} | {thirds} | "
                      f"{_fmt(v['n_keyframes'], '{:.0f}')} | {_fmt(v['n_loop_closures'], '{:.0f}')} | "
+                     f"{_loops(v['loops'])} | "
                      f"{_fmt(v['n_graph_solves'], '{:.0f}')} | {_fmt(v['n_remaps'], '{:.0f}')} | "
                      f"{_fmt(v['refinements_rejected'], '{:.0f}')} |")
     if not all(k in s for k in ("field", "frontend", "fused")):
@@ -128,7 +143,9 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=3, help="field seeds per field / fused variant")
     ap.add_argument("--max-frames", type=int, default=None, help="truncate the real sequences")
     ap.add_argument("--stride", type=int, default=1, help="multiply the real sequences' frame strides")
-    ap.add_argument("--only", choices=("tum", "7scenes"), default=None, help="one real sequence only")
+    ap.add_argument("--tum-full", type=Path, default=os.environ.get("LRSLAM_TUM_FULL"),
+                    help="folder holding the full TUM rgbd_dataset_freiburg1_xyz (default: $LRSLAM_TUM_FULL)")
+    ap.add_argument("--only", choices=("tum", "7scenes", "xyz"), default=None, help="one real sequence only")
     ap.add_argument("--ablation", type=int, default=0, metavar="SEEDS",
                     help="add one fused row per factor set, over this many seeds (0: none)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
@@ -175,6 +192,14 @@ def main() -> int:
             st = stride * a.stride
             t, ok = _run(paths[0], preset, ov + ([f"dataset.options.stride={st}"] if st > 1 else []), a,
                          a.out / f"{preset}-stride{st}")
+            texts.append(t)
+            oks.append(ok)
+    if a.suite in ("real", "all") and a.only in (None, "xyz"):
+        xyz = sorted(Path(a.tum_full).glob("*freiburg1_xyz*")) if a.tum_full else []
+        if not xyz:
+            print(f"\n(no rgbd_dataset_freiburg1_xyz under --tum-full / $LRSLAM_TUM_FULL ({a.tum_full}); skipped)")
+        else:
+            t, ok = _run(xyz[0], "tum-cpu", ov, a, a.out / "tum-cpu-fr1-xyz")
             texts.append(t)
             oks.append(ok)
     a.out.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,10 @@ def _num(v, fmt: str) -> str:
 def _ate_line(m: dict) -> str:
     if m.get("ate_rmse_cm") is not None:
         seed = f"   (seed only: {_num(m['seed_ate_rmse_cm'], '.3f')} cm)" if "seed_ate_rmse_cm" in m else ""
-        return f"ATE RMSE: {_num(m['ate_rmse_cm'], '.3f')} cm   mean: {_num(m.get('ate_mean_cm'), '.3f')} cm{seed}"
+        online = (f"   (before the final refinement: {_num(m['online_ate_rmse_cm'], '.3f')} cm)"
+                  if "online_ate_rmse_cm" in m else "")
+        return (f"ATE RMSE: {_num(m['ate_rmse_cm'], '.3f')} cm   mean: {_num(m.get('ate_mean_cm'), '.3f')} cm"
+                f"{seed}{online}")
     if m.get("evaluation_error"):
         return f"ATE: evaluation failed ({m['evaluation_error']})"
     if m.get("has_ground_truth", False):
@@ -38,6 +41,12 @@ def _summary_lines(metrics: dict, out: Path) -> list[str]:
     lines = [f"mode: {metrics['mode']}   frames: {metrics['n_frames']}   keyframes: {metrics['n_keyframes']}"
              f"   loop closures: {metrics['n_loop_closures']}   scene bound: {metrics['bound_source']}",
              _ate_line(metrics)]
+    if metrics.get("loops"):
+        lp = metrics["loops"]
+        shift = metrics.get("final_refine_max_shift_m")
+        lines.append(f"loops: {lp['proposed']} proposed, {lp['kept']} kept; rejected: {lp['unverified']} by "
+                     f"registration, {lp['disputed']} by the map, {lp['inconsistent']} by the graph"
+                     + (f"   final refinement: keyframes moved up to {100 * shift:.2f} cm" if shift is not None else ""))
     if metrics.get("factor_chi2"):
         lines.append("graph factors vs ground truth (chi2/dof, 1 = honest weights): " + ", ".join(
             f"{k} {_num(v['chi2_per_dof_mean'], '.2f')} (n={v['n']})" for k, v in metrics["factor_chi2"].items()))

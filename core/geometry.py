@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "make_pose", "constant_velocity", "checked_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
     "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
-    "propagate_covariance", "orthonormalise",
+    "propagate_covariance", "orthonormalise", "between_residual",
 ]
 
 
@@ -158,6 +158,15 @@ def log_se3(T: np.ndarray) -> np.ndarray:
         k = (1 - half * np.cos(half) / np.sin(half)) / theta**2
         V_inv = np.eye(3) - 0.5 * W + k * W @ W
     return np.concatenate([w, V_inv @ T[:3, 3]])
+
+
+def between_residual(T_meas: np.ndarray, information: np.ndarray, T_other: np.ndarray) -> tuple[np.ndarray, float]:
+    """Residual of a between measurement ``T_meas`` (4, 4, a relative pose ``T_i_j``) against another estimate
+    ``T_other`` of the same relative pose: the error 6-vector ``e = log(T_meas^-1 T_other)`` (``[rotation rad,
+    translation m]``, right perturbation) and its normalised square ``chi2 = e^T information e`` (``information``
+    (6, 6)). Chi-square with 6 degrees of freedom when ``information`` is the inverse of the error covariance."""
+    e = log_se3(inv(np.asarray(T_meas, dtype=np.float64)) @ np.asarray(T_other, dtype=np.float64))
+    return e, float(e @ np.asarray(information, dtype=np.float64) @ e)
 
 
 def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -19,9 +19,9 @@ import numpy as np
 
 from lrslam.evaluation.association import associate
 from lrslam.evaluation.ate import ground_truth_samples
-from lrslam.geometry import inv, log_se3
+from lrslam.geometry import between_residual, inv
 
-__all__ = ["FactorChi2", "factor_residuals", "factor_chi2", "run_factor_chi2"]
+__all__ = ["FactorChi2", "factor_chi2", "run_factor_chi2"]
 
 DOF = 6
 
@@ -43,23 +43,16 @@ class FactorChi2:
                 "trans_rms_cm": round(self.trans_rms_cm, 4), "rot_rms_deg": round(self.rot_rms_deg, 4)}
 
 
-def factor_residuals(T_meas: np.ndarray, information: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, float]:
-    """Error 6-vector ``log(T_meas^-1 T_true)`` and its ``chi2 = e^T information e`` for one factor
-    (``T_meas``, ``T_true`` (4, 4) relative poses, ``information`` (6, 6))."""
-    e = log_se3(inv(np.asarray(T_meas, dtype=np.float64)) @ np.asarray(T_true, dtype=np.float64))
-    return e, float(e @ np.asarray(information, dtype=np.float64) @ e)
-
-
 def factor_chi2(factors: Sequence, gt_poses: dict[int, np.ndarray]) -> dict[str, FactorChi2]:
     """Per factor kind, :class:`FactorChi2` of ``factors`` (records with ``kind, i, j, T_i_j, information``,
     e.g. :class:`lrslam.backend.policy.FactorRecord`) against ``gt_poses`` (frame index -> ground-truth
     ``T_w_c``); factors whose frames have no ground truth are skipped."""
     by_kind: dict[str, list[tuple[np.ndarray, float]]] = {}
     for f in factors:
-        if f.i not in gt_poses or f.j not in gt_poses:
+        if f.i == f.j or f.i not in gt_poses or f.j not in gt_poses:   # unary (a field pose): world-frame bound
             continue
         true = inv(gt_poses[f.i]) @ gt_poses[f.j]
-        by_kind.setdefault(f.kind, []).append(factor_residuals(f.T_i_j, f.information, true))
+        by_kind.setdefault(f.kind, []).append(between_residual(f.T_i_j, f.information, true))
     out = {}
     for kind, rows in sorted(by_kind.items()):
         e = np.stack([r[0] for r in rows])

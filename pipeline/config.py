@@ -210,8 +210,10 @@ MODE_PRESETS: dict[str, dict[str, Any]] = {
               # (or at most 5 % worse on the same rays: gains within the loss noise still anchor the pose to the map)
               "field": {"tracking": {"accept_if_better": True, "accept_tolerance": 0.05}},
               # every frame: the odometry's seed and the field's pose weighed by their measured noise
-              # (lrslam.backend.frame_fusion)
-              "fusion": {"per_frame": True}},
+              # (lrslam.backend.frame_fusion); at the end, one graph solve over every keyframe with the factors
+              # calibrated by that noise, where the field was gated out (backend.final_refine_when)
+              "fusion": {"per_frame": True},
+              "backend": {"final_refine": True}},
 }
 
 

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from lrslam.frame import Frame
+from lrslam.backend.calibration import GapNoise
 from lrslam.backend.frame_fusion import FusedPose
 from lrslam.backend.policy import Correction, FactorRecord
 
@@ -152,6 +153,12 @@ class Fusion(Stateful, Protocol):
 
     def sigmas(self) -> dict[str, float]: ...
 
+    def gap_noise(self) -> GapNoise:
+        """The measured noise over a keyframe gap (the graph factors' calibration)."""
+
+    def field_pose(self) -> np.ndarray | None:
+        """The field's own tracked pose of the last fused frame (None when it failed)."""
+
 
 class Backend(Stateful, Protocol):
     """The keyframe pose graph and its policy (:class:`lrslam.backend.policy.GraphBackend`)."""
@@ -166,6 +173,18 @@ class Backend(Stateful, Protocol):
     def on_frame(self, odometry: OdometryResult | None) -> None:
         """Every frame's frontend measurement (None without one)."""
 
-    def on_keyframe(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None) -> Correction:
-        """A new keyframe ``frame.index`` (every keyframe's current pose in ``poses``) and the field's
-        information of its pose (None without one)."""
+    def on_keyframe(self, frame: Frame, poses: dict[int, np.ndarray], information: np.ndarray | None,
+                    noise: GapNoise | None = None, T_field: np.ndarray | None = None) -> Correction:
+        """A new keyframe ``frame.index`` (every keyframe's current pose in ``poses``), the field's information of
+        its pose (None without one), the run's measured noise and the field's own pose of it (None without a
+        fusion)."""
+
+    def refine_all(self, poses: dict[int, np.ndarray], noise: GapNoise | None = None) -> Correction:
+        """The final global refinement over every keyframe ``poses``."""
+
+    def calibrated_measurements(self) -> list[FactorRecord]:
+        """Every measurement with the information the graph weighs it by."""
+
+    @property
+    def loop_counts(self) -> dict[str, int]:
+        """Loops proposed / unverified / disputed / inconsistent / kept."""

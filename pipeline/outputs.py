@@ -91,9 +91,10 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
 
 
 def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.ndarray | None]:
-    """Write ``trajectory.txt``, ``keyframes.txt``, ``trajectory_seed.txt`` and (with a frontend)
-    ``trajectory_frontend.txt``; returns the others than the run's own: ``{"seed": (N, 4, 4), "frontend":
-    (N, 4, 4) or None}``."""
+    """Write ``trajectory.txt``, ``keyframes.txt``, ``trajectory_seed.txt``, (with a frontend)
+    ``trajectory_frontend.txt`` and (after a final global refinement) ``trajectory_online.txt``, the trajectory as
+    tracked before it; returns the others than the run's own: ``{"seed": (N, 4, 4), "frontend": (N, 4, 4) or
+    None, "online": (N, 4, 4) or None}``."""
     poses = result.poses
     n = len(poses)
     write_tum(out_dir / "trajectory.txt", timestamps, poses, header=f"lrslam {cfg.mode} T_w_c")
@@ -104,13 +105,18 @@ def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.
     frontend = result.frontend_poses[:n] if result.frontend_poses is not None else None
     if frontend is not None:
         write_tum(out_dir / "trajectory_frontend.txt", timestamps, frontend, header="frontend-only poses T_w_c")
-    return {"seed": seed, "frontend": frontend}
+    online = result.online_poses[:n] if result.online_poses is not None else None
+    if online is not None:
+        write_tum(out_dir / "trajectory_online.txt", timestamps, online,
+                  header="T_w_c as tracked, before the final global refinement")
+    return {"seed": seed, "frontend": frontend, "online": online}
 
 
 def _write_factors(path: Path, factors, timestamps) -> None:
-    """``factors.npz``: every pose-graph between factor as it was added (``kind``, frame indices ``i``, ``j``,
-    their timestamps ``t_i``, ``t_j`` (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6)); nothing without a
-    graph."""
+    """``factors.npz``: every pose-graph measurement as it was added, with the information the graph weighs it by
+    (calibrated by the run's measured noise in fused mode): ``kind`` (``field_pose``: the field's own pose of
+    keyframe ``i == j``, ``T_i_j`` then ``T_w_i``), frame indices ``i``, ``j``, their timestamps ``t_i``, ``t_j``
+    (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6); nothing without a graph."""
     if not factors:
         return
     ts = np.asarray(timestamps, dtype=np.float64)

@@ -25,7 +25,7 @@ import numpy as np
 from lrslam.errors import InputError
 from lrslam.frame import Frame
 from lrslam.pipeline.config import RunConfig
-from lrslam.backend.policy import FactorRecord
+from lrslam.backend.policy import Correction, FactorRecord
 from lrslam.pipeline.contracts import Refinement, Seed
 from lrslam.pipeline.parts import Parts, build_parts
 from lrslam.pipeline.timing import StageTimer
@@ -67,6 +67,8 @@ class SlamResult:
     records: per-frame :class:`FrameRecord`. counts: loops, solves, re-maps, reverted mapping poses ...
     mesh: the field's mesh (``trimesh.Trimesh``) or None. parameters: field parameter counts or None.
     device: the field's device or None. timestamps: (N,) seconds of the frames (set by :class:`lrslam.Slam`).
+    online_poses: (N, 4, 4) ``T_w_c`` as tracked online, before the final global refinement moved keyframes
+    (``backend.final_refine``); None when no final refinement was solved (``poses`` are then the online ones).
     """
 
     poses: np.ndarray
@@ -80,6 +82,7 @@ class SlamResult:
     device: str | None = None
     timestamps: np.ndarray | None = None
     factors: tuple[FactorRecord, ...] = ()
+    online_poses: np.ndarray | None = None
 
 
 class SlamRunner:
@@ -101,6 +104,7 @@ class SlamRunner:
         self._frontend: list[np.ndarray] = []
         self._records: list[FrameRecord] = []
         self.n_remaps = 0
+        self._final_refine = cfg.backend.final_refine
 
     @property
     def n_loops(self) -> int:
@@ -210,8 +214,9 @@ class SlamRunner:
         """Steps 5-6: the backend's verdict on the new keyframe, its corrections written into the trajectory,
         and the field re-mapped over the keyframes it names."""
         p = self.parts
+        noise, T_field = (p.fusion.gap_noise(), p.fusion.field_pose()) if p.fusion is not None else (None, None)
         with self.timer("graph"):
-            corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information)
+            corr = p.backend.on_keyframe(frame, self.traj.keyframe_poses(), information, noise, T_field)
         if p.fusion is not None:
             p.fusion.on_keyframe(corr.link)
         rec.loops, rec.solved = corr.loops, corr.solved
@@ -220,14 +225,37 @@ class SlamRunner:
             return
         rec.moved = {int(k): (float(m), float(d)) for k, (m, d) in corr.shifts.items()}
         rec.moved_from = {int(k): tuple(float(x) for x in self.traj.pose(k)[:3, 3]) for k in corr.poses}
+        rec.remapped = self._apply(corr, f"keyframe {frame.index}")
+
+    def _apply(self, corr: Correction, what: str) -> bool:
+        """Write a solve's corrections into the trajectory and re-map the field over the keyframes it names;
+        returns whether it re-mapped."""
         self.traj.apply_corrections(corr.poses)
-        if corr.remap and p.mapper is not None:
-            with self.timer("remap"):
-                p.mapper.remap(self.traj.keyframe_poses(), list(corr.remap))
-            rec.remapped = True
-            self.n_remaps += 1
-            log.info("keyframe %d: graph moved %d keyframe(s) (max %.3f m); re-mapped %d", frame.index,
-                     len(corr.poses), corr.shifts[corr.remap[0]][0], len(corr.remap))
+        if not corr.remap or self.parts.mapper is None:
+            return False
+        with self.timer("remap"):
+            self.parts.mapper.remap(self.traj.keyframe_poses(), list(corr.remap))
+        self.n_remaps += 1
+        log.info("%s: graph moved %d keyframe(s) (max %.3f m); re-mapped %d", what, len(corr.poses),
+                 corr.shifts[corr.remap[0]][0], len(corr.remap))
+        return True
+
+    def refine_all(self) -> Correction | None:
+        """The final global refinement (``backend.final_refine``; :meth:`finish` calls it): one solve over every
+        keyframe and factor, its corrections written, the field re-mapped over the most-moved keyframes. Returns
+        the correction (None without a backend or when it is off)."""
+        p = self.parts
+        if p.backend is None or not self._final_refine:
+            return None
+        self._sync_mapper()
+        with self.timer("graph"):
+            corr = p.backend.refine_all(self.traj.keyframe_poses(),
+                                        p.fusion.gap_noise() if p.fusion is not None else None)
+        if corr.solved:
+            moved = max((m for m, _ in corr.shifts.values()), default=0.0)
+            log.info("final refinement: %d keyframe(s) moved (max %.3f m)", len(corr.poses), moved)
+            self._apply(corr, "final refinement")
+        return corr
 
     def _record(self, rec: FrameRecord, seed: Seed, T: np.ndarray) -> FrameRecord:
         self._seeds.append(np.asarray(seed.T_w_c, dtype=np.float64).copy())
@@ -291,6 +319,8 @@ class SlamRunner:
         """The run's frozen result (with the field's mesh when there is a field and ``mesh``)."""
         p = self.parts
         field_mesh = None
+        online = self.traj.poses()
+        final = self.refine_all()
         if p.mapper is not None:
             self._sync_mapper()
             p.mapper.stop()
@@ -302,6 +332,9 @@ class SlamRunner:
             "n_loop_closures": self.n_loops, "n_remaps": self.n_remaps,
             "n_graph_solves": p.backend.n_solves if p.backend is not None else 0,
             "n_loops_disputed_by_field": p.backend.n_loops_disputed if p.backend is not None else 0,
+            "loops": p.backend.loop_counts if p.backend is not None else None,
+            "final_refine_max_shift_m": (max((m for m, _ in final.shifts.values()), default=0.0)
+                                         if final is not None and final.solved else None),
             "seed_failures": sum(not r.seed_ok for r in recs),
             "refine_failures": sum(r.refine_ok is False for r in recs),
             "refinements_kept": sum(bool(r.refine_accepted) for r in recs),
@@ -317,4 +350,5 @@ class SlamRunner:
             frontend_poses=np.stack(self._frontend) if self._frontend else None, records=recs, counts=counts,
             mesh=field_mesh, parameters=p.mapper.parameter_count() if p.mapper is not None else None,
             device=p.mapper.device if p.mapper is not None else None,
-            factors=tuple(p.backend.measurements) if p.backend is not None else ())
+            factors=tuple(p.backend.calibrated_measurements()) if p.backend is not None else (),
+            online_poses=online if final is not None and final.solved else None)

@@ -41,6 +41,7 @@ class _Loops:
 
     def __init__(self):
         self.queue: dict[int, list[LoopConstraint]] = {}
+        self.rejections: list[tuple[int, str]] = []
 
     def add_keyframe(self, kf, frame):
         pass

@@ -100,3 +100,26 @@ def test_console_shows_warnings_but_not_the_run_log_info(capsys):
     finally:
         logging.getLogger().removeHandler(h)
     assert "warning-line" in err and "info-line" not in err
+
+
+def test_online_trajectory_is_the_run_without_the_final_refinement(tiny_sequence, tmp_path):
+    """A fused run whose final refinement runs (forced: ``final_refine_when=always``) keeps the trajectory as
+    tracked in ``trajectory_online.txt`` and its ATE as ``online_ate_rmse_cm``: the very poses of the same run
+    with the final refinement off (deterministic), which writes no such file."""
+    from lrslam.pipeline.run import run_sequence
+
+    base = TINY + ["deterministic=true", "fusion.warmup_keyframes=1", "output.mesh=false"]
+    on = build_config("synthetic", overrides=base + ["backend.final_refine_when=always"], mode="fused")
+    off = build_config("synthetic", overrides=base + ["backend.final_refine=false"], mode="fused")
+    run_sequence(tiny_sequence, on, tmp_path / "on", progress=False)
+    run_sequence(tiny_sequence, off, tmp_path / "off", progress=False)
+    m_on = json.loads((tmp_path / "on" / "metrics.json").read_text())
+    m_off = json.loads((tmp_path / "off" / "metrics.json").read_text())
+    assert m_on["final_refine_max_shift_m"] is not None and m_off["final_refine_max_shift_m"] is None
+    _, online = read_tum(tmp_path / "on" / "trajectory_online.txt")
+    _, tracked = read_tum(tmp_path / "off" / "trajectory.txt")
+    assert np.allclose(online, tracked, atol=1e-6)
+    _, refined = read_tum(tmp_path / "on" / "trajectory.txt")
+    assert not np.allclose(refined, tracked, atol=1e-6)   # the refinement did move keyframes
+    assert m_on["online_ate_rmse_cm"] == pytest.approx(m_off["ate_rmse_cm"], abs=1e-4)
+    assert not (tmp_path / "off" / "trajectory_online.txt").exists() and "online_ate_rmse_cm" not in m_off
