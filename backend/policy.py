@@ -69,7 +69,7 @@ class BackendConfig(StrictModel):
     calibrate: bool = Field(False, description="with the run's measured noise (fused mode), every factor's "
                             "information calibrated from it (lrslam.backend.calibration) before each online solve "
                             "(the final refinement always is). Off: on the real excerpts the estimate states the "
-                            "registrations 16-50x too precise (chi2 vs ground truth) and the loop solves it let "
+                            "registrations 16-53x too precise (chi2 vs ground truth) and the loop solves it let "
                             "through cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 cm (3 seeds)")
     loop_max_chi2: float = Field(22.46, ge=0, description="after a solve, a loop whose normalised squared residual "
                                  "exceeds this (chi-square, 6 dof: 22.46 is its 99.9 % point) is removed as "
@@ -110,6 +110,11 @@ class Correction:
     def loops(self) -> int:
         """How many verified loop closures were added."""
         return len(self.edges)
+
+    @property
+    def max_shift_m(self) -> float:
+        """The largest move of a written keyframe in metres (0 when none was written)."""
+        return max((m for m, _ in self.shifts.values()), default=0.0)
 
 
 @dataclass(frozen=True)
@@ -281,13 +286,13 @@ class GraphBackend:
         a prior at its own tracked pose of each keyframe (``field_pose`` records; without them, between factors
         re-stated from ``poses``), the frontend as keyframe-to-keyframe registrations and loops: a smoother over
         the keyframes of what the per-frame fusion filtered forward. Returns what to write and re-map;
-        ``Correction.solved`` is False when there was nothing to solve (under two keyframes, or no measured noise
-        to weigh by)."""
+        ``Correction.solved`` is False when there was nothing to solve (``final_refine`` off, under two keyframes,
+        no measured noise to weigh by, or the field not gated out under ``final_refine_when=field_gated``)."""
         from lrslam.backend.graph import PoseGraph
 
         self._noise = noise
         ids, cal = self.graph.keyframe_ids, self._calibration(online=False)
-        if len(ids) < 2 or any(k not in poses for k in ids) or cal is None:
+        if not self.cfg.final_refine or len(ids) < 2 or any(k not in poses for k in ids) or cal is None:
             return Correction()
         if self.cfg.final_refine_when == "field_gated" and not bool(np.all(cal.field_gated)):
             log.info("final refinement skipped: the field takes a share of the fusion (final_refine_when=field_gated)")

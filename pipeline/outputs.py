@@ -114,7 +114,7 @@ def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.
 
 def _write_factors(path: Path, factors, timestamps) -> None:
     """``factors.npz``: every pose-graph measurement as it was added, with the information the graph weighs it by
-    (calibrated by the run's measured noise in fused mode): ``kind`` (``field_pose``: the field's own pose of
+    (calibrated by the run's measured noise with ``backend.calibrate``): ``kind`` (``field_pose``: the field's own pose of
     keyframe ``i == j``, ``T_i_j`` then ``T_w_i``), frame indices ``i``, ``j``, their timestamps ``t_i``, ``t_j``
     (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6); nothing without a graph."""
     if not factors:

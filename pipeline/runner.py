@@ -104,7 +104,6 @@ class SlamRunner:
         self._frontend: list[np.ndarray] = []
         self._records: list[FrameRecord] = []
         self.n_remaps = 0
-        self._final_refine = cfg.backend.final_refine
 
     @property
     def n_loops(self) -> int:
@@ -243,17 +242,16 @@ class SlamRunner:
     def refine_all(self) -> Correction | None:
         """The final global refinement (``backend.final_refine``; :meth:`finish` calls it): one solve over every
         keyframe and factor, its corrections written, the field re-mapped over the most-moved keyframes. Returns
-        the correction (None without a backend or when it is off)."""
+        the backend's correction (not solved when the backend's policy says no), None without a backend."""
         p = self.parts
-        if p.backend is None or not self._final_refine:
+        if p.backend is None:
             return None
         self._sync_mapper()
         with self.timer("graph"):
             corr = p.backend.refine_all(self.traj.keyframe_poses(),
                                         p.fusion.gap_noise() if p.fusion is not None else None)
         if corr.solved:
-            moved = max((m for m, _ in corr.shifts.values()), default=0.0)
-            log.info("final refinement: %d keyframe(s) moved (max %.3f m)", len(corr.poses), moved)
+            log.info("final refinement: %d keyframe(s) moved (max %.3f m)", len(corr.poses), corr.max_shift_m)
             self._apply(corr, "final refinement")
         return corr
 
@@ -333,8 +331,7 @@ class SlamRunner:
             "n_graph_solves": p.backend.n_solves if p.backend is not None else 0,
             "n_loops_disputed_by_field": p.backend.n_loops_disputed if p.backend is not None else 0,
             "loops": p.backend.loop_counts if p.backend is not None else None,
-            "final_refine_max_shift_m": (max((m for m, _ in final.shifts.values()), default=0.0)
-                                         if final is not None and final.solved else None),
+            "final_refine_max_shift_m": final.max_shift_m if final is not None and final.solved else None,
             "seed_failures": sum(not r.seed_ok for r in recs),
             "refine_failures": sum(r.refine_ok is False for r in recs),
             "refinements_kept": sum(bool(r.refine_accepted) for r in recs),

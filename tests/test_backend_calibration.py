@@ -99,8 +99,9 @@ def test_calibrated_factors_have_unit_normalised_residuals():
 
 def _backend(records: list[FactorRecord], n: int, first: np.ndarray, **cfg) -> GraphBackend:
     """A GraphBackend holding ``records`` over keyframes 0..n-1 (no images: refine_all needs none); the final
-    refinement runs whatever the field's share (``final_refine_when="always"``) unless ``cfg`` says otherwise."""
-    backend = GraphBackend(BackendConfig(**({"final_refine_when": "always"} | cfg)), PoseGraph(GraphConfig()), loop_closer=None, link=None,
+    refinement is on and runs whatever the field's share (``final_refine_when="always"``) unless ``cfg`` says
+    otherwise."""
+    backend = GraphBackend(BackendConfig(**({"final_refine": True, "final_refine_when": "always"} | cfg)), PoseGraph(GraphConfig()), loop_closer=None, link=None,
                            field_default_information=np.eye(6))
     backend.graph.add_keyframe(0, first)
     for k in range(1, n):
@@ -214,3 +215,4 @@ def test_final_refinement_by_default_only_where_the_field_is_gated():
         assert not corr.solved and not corr.poses
     corr = _backend(records, N, truth[0], final_refine_when="field_gated").refine_all(poses, gated)
     assert corr.solved and corr.poses
+    assert not _backend(records, N, truth[0], final_refine=False).refine_all(poses, gated).solved
