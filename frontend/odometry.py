@@ -8,9 +8,12 @@ Per frame (:meth:`Odometry.track`):
    (bounded by the same ``gates.max_translation`` / ``gates.max_rotation``);
 4. retry a failed registration (``retry``): from zero motion instead of the constant-velocity guess, then with
    the other registration method (``retry_method``) -- fast or jerky motion breaks the velocity guess first;
-5. on failure of every attempt (frame without depth, featureless frame, Open3D error, failed gate) keep the
+5. with ``model.enabled``, refine a slow frame against a TSDF model of the frames tracked so far
+   (:mod:`lrslam.frontend.model_tracking`: bounds the drift of frame-to-frame registration) and integrate
+   every registered frame into it;
+6. on failure of every attempt (frame without depth, featureless frame, Open3D error, failed gate) keep the
    prediction, with weak information and the reason logged;
-6. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
+7. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
    reference changes when the camera has moved far from it or the fitness drops).
 
 The poses here are the **frontend's own estimate** (odometry alone, never corrected by the field or the graph):
@@ -32,6 +35,7 @@ from pydantic import Field
 from lrslam.camera import check_intrinsics
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
+from lrslam.frontend.model_tracking import ModelTracker, ModelTrackingConfig
 from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates, fallback_information,
                                           frame_problem, register_rgbd)
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
@@ -59,6 +63,8 @@ class OdometryConfig(StrictModel):
     # Retries of a failed registration (zero-motion guess, then the other method).
     retry: bool = True
     retry_method: Literal["rgbd", "icp", "kiss", "none"] = "icp"
+    # Frame-to-model refinement of slow frames (off: frame-to-frame / frame-to-keyframe only).
+    model: ModelTrackingConfig = ModelTrackingConfig()
 
 
 @dataclass(frozen=True)
@@ -80,7 +86,8 @@ class OdometryResult:
         fitness: inlier fraction (0..1).
         inlier_rmse: metres (inf when unknown).
         reason: why not ok, or a note ("first frame"); "" otherwise.
-        attempt: which attempt succeeded ("velocity", "zero-motion", "<method>") or "" when none did.
+        attempt: which attempt succeeded ("velocity", "zero-motion", "<method>"; "+model" appended when the
+            frame-to-model refinement was kept) or "" when none did.
     """
 
     frame_index: int
@@ -125,6 +132,8 @@ class Odometry:
         self._T_w_last = T0.copy()
         self._T_w_prev = T0.copy()  # pose before the last one: velocity = inv(prev) @ last
         self._failures = 0
+        self._model = (ModelTracker(self.cfg.model, self.K, self.height, self.width) if self.cfg.model.enabled
+                       else None)
         return self.track(frame) if frame is not None else None
 
     @property
@@ -157,7 +166,7 @@ class Odometry:
         return {"T_w_c0": self._T_w_c0.copy(), "ref": None if self._ref is None else self._ref.state(),
                 "ref_index": self._ref_index, "T_w_ref": self._T_w_ref.copy(), "last_index": self._last_index,
                 "last_view": last, "T_w_last": self._T_w_last.copy(), "T_w_prev": self._T_w_prev.copy(),
-                "failures": self._failures}
+                "failures": self._failures, "model": None if self._model is None else self._model.state()}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` output (into an odometry built with the same config and camera)."""
@@ -171,6 +180,8 @@ class Odometry:
         self._T_w_last = np.asarray(state["T_w_last"], dtype=np.float64)
         self._T_w_prev = np.asarray(state["T_w_prev"], dtype=np.float64)
         self._failures = int(state["failures"])
+        if self._model is not None and state.get("model") is not None:
+            self._model.load_state(state["model"])
 
     # -- tracking --------------------------------------------------------------------------------------------
     def track(self, frame: FrameLike) -> OdometryResult:
@@ -202,12 +213,13 @@ class Odometry:
         ok = attempt != ""
         if ok:
             reason = ""
+            T_w_c, attempt = self._refine_with_model(index, view, T_w_c, attempt)
         ref_index = self._ref_index if self._ref_index is not None else index
         T_ref_c = inv(self._T_w_ref) @ T_w_c if self._ref is not None else np.eye(4)
         if ok:
             info = reg.information
         else:
-            # 4. Fallback to the prediction.
+            # 6. Fallback to the prediction.
             info = fallback_information(gates)
             log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
         result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
@@ -215,11 +227,24 @@ class Odometry:
                                 reg.inlier_rmse if reg is not None else float("inf"), reason,
                                 inv(self._T_w_last) @ T_w_c, attempt)
 
-        # 5. Update velocity and reference.
+        if self._model is not None and ok and problem is None:
+            self._model.integrate(view.rgb, view.depth, T_w_c)
+        # 7. Update velocity and reference.
         self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, T_w_c, index
         self._last_view = view if problem is None else None
         self._update_reference(index, view, problem, result)
         return result
+
+    def _refine_with_model(self, index: int, view: RGBDView, T_w_c: np.ndarray, attempt: str) -> tuple[np.ndarray, str]:
+        """5. Frame-to-model refinement of a registered slow frame (kept only when small and well supported):
+        ``(T_w_c, attempt)``, with "+model" appended when kept."""
+        if self._model is None or not self._model.wants(inv(self._T_w_last) @ T_w_c):
+            return T_w_c, attempt
+        T_refined, why = self._model.refine(view.rgb, view.depth, T_w_c)
+        if T_refined is None:
+            log.debug("frame %d: %s; the frame-to-frame pose stands", index, why)
+            return T_w_c, attempt
+        return T_refined, attempt + "+model"
 
     def _attempts(self, T_w_pred: np.ndarray):
         """(name, initial world pose, registration config) to try in order (all under the same gates)."""
@@ -237,6 +262,8 @@ class Odometry:
         if problem is None:
             self._set_reference(index, view, self._T_w_c0)
             reason, ok = "first frame", True
+            if self._model is not None:
+                self._model.integrate(view.rgb, view.depth, self._T_w_c0)
         else:
             reason, ok = f"first frame: {problem}", False
             log.info("frame %d: %s", index, reason)

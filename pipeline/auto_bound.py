@@ -61,10 +61,13 @@ def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = 1.
                        progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Bound (3, 2) metres (world frame, first camera at ``T_w_c0``) covering every frame of ``seq`` seen from
     its odometry pose: camera centres and depth points (every ``pixel_stride``-th pixel, depth < ``max_depth``
-    metres), 0.1-99.9 percentile extent plus ``margin`` metres. ``progress(done, total)`` after each frame."""
+    metres), 0.1-99.9 percentile extent plus ``margin`` metres. ``progress(done, total)`` after each frame.
+    Frame to frame only (``odometry_cfg.model`` off): a bound with a metre of margin does not need the
+    frame-to-model refinement's centimetres, and the pre-pass would pay it on every frame."""
     from lrslam.frontend.odometry import Odometry
 
     first = seq[0]
+    odometry_cfg = odometry_cfg.model_copy(update={"model": odometry_cfg.model.model_copy(update={"enabled": False})})
     odo = Odometry(odometry_cfg, first.K, first.height, first.width)
     odo.reset(np.asarray(T_w_c0, dtype=np.float64), first)
     centres, points = [T_w_c0[:3, 3]], [_world_points(first.depth, first.K, T_w_c0, max_depth, pixel_stride)]
