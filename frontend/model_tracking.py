@@ -3,10 +3,9 @@
 projective ICP), seeded by the frame-to-frame registration.
 
 Frame-to-frame odometry accumulates every registration's error; a model built from many frames does not forget
-the scene, so registering against it bounds that drift while the camera stays over mapped ground (measured on the
-full TUM fr1/xyz: 4.00 -> 2.31 cm, docs/BENCHMARKS.md). A fast camera outruns a model whose new parts were
-integrated from one view each (a synthetic orbit at 5.5 cm / 2.5 deg per frame: 0.79 -> 6.25 cm when every frame
-was refined), so the refinement runs only on frames whose frame-to-frame motion is small
+the scene, so registering against it bounds that drift while the camera stays over mapped ground (figures
+below). A fast camera outruns a model whose new parts were integrated from one view each (a synthetic orbit at
+5.5 cm / 2.5 deg per frame: 0.79 -> 6.25 cm in a prototype that refined every frame), so the refinement runs only on frames whose frame-to-frame motion is small
 (``max_step_translation`` / ``max_step_rotation``) and is kept only when it moved the pose little
 (``max_correction_*``) with enough projective inliers (``min_fitness``); otherwise the frame-to-frame pose stands.
 Every tracked frame is integrated at its final pose.
@@ -79,22 +78,21 @@ class ModelTracker:
 
         self.cfg = cfg
         self._o3d, self._o3c = o3d, o3c
-        self._device = o3c.Device("CPU:0")
+        device = o3c.Device("CPU:0")
         intrinsics = o3c.Tensor(np.asarray(K, dtype=np.float64))
         slam = o3d.t.pipelines.slam
-        self._model = slam.Model(cfg.voxel_size, 16, cfg.block_count, o3c.Tensor(np.eye(4)), self._device)
-        self._input = slam.Frame(int(height), int(width), intrinsics, self._device)
-        self._raycast = slam.Frame(int(height), int(width), intrinsics, self._device)
+        self._model = slam.Model(cfg.voxel_size, 16, cfg.block_count, o3c.Tensor(np.eye(4)), device)
+        self._input = slam.Frame(int(height), int(width), intrinsics, device)
+        self._raycast = slam.Frame(int(height), int(width), intrinsics, device)
         self._frames = 0       # poses handed to this model object (Open3D's frame counter: warns on a gap)
         self.integrated = 0    # frames integrated
 
     # -- frames ----------------------------------------------------------------------------------------------
     def _set_frame(self, rgb: np.ndarray, depth: np.ndarray) -> None:
         o3d, o3c = self._o3d, self._o3c
-        frame = self._input
         raw = np.clip(np.nan_to_num(depth, nan=0.0) * DEPTH_UNITS, 0, 65535).astype(np.uint16)
-        frame.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(raw))))
-        frame.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb))))
+        self._input.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(raw))))
+        self._input.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb))))
 
     def _set_pose(self, T_w_c: np.ndarray) -> None:
         self._model.update_frame_pose(self._frames, self._o3c.Tensor(np.asarray(T_w_c, dtype=np.float64)))
@@ -160,7 +158,6 @@ class ModelTracker:
                 blob = f.read()
         blocks = self._model.frustum_block_coords   # the blocks the next raycast visits (set by integrate)
         return {"voxel_grid": np.frombuffer(blob, dtype=np.uint8).copy(), "integrated": self.integrated,
-
                 "frustum_blocks": None if self.integrated == 0 else blocks.numpy().copy()}
 
     def load_state(self, state: dict) -> None:

@@ -1,5 +1,6 @@
 """Frame-to-model refinement of the odometry (lrslam.frontend.model_tracking): it bounds the drift of
-frame-to-frame registration on a slow synthetic sequence, leaves fast frames alone, and resumes bit for bit."""
+frame-to-frame registration on a slow synthetic sequence, leaves fast frames alone, and a restored odometry
+refines against the same model."""
 
 from __future__ import annotations
 
