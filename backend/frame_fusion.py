@@ -18,6 +18,10 @@ the odometry's seed, so the two are correlated and their disagreement understate
 variance came out at the floor on TUM fr1/rpy). :class:`NoiseEstimate` keeps the running sums, started from prior
 values until ``warmup_keyframes`` gaps are measured.
 
+A frame whose odometry failed, was overruled by the field's seed arbitration, or registered weakly (fitness below
+``gates.trusted_fitness``: at large motion a registration that passes its gates can be decimetres off, and the
+noise estimate, which compares the frontend with itself, cannot tell) takes the field's word (``k = 1``).
+
 The same share applies where the field's mapper moves poses (its joint optimisation of the window's keyframes,
 :meth:`FrameFusion.blend`): on a fast synthetic orbit whose map stayed poor, those write-backs alone took the
 fused ATE from the frontend's 0.8 to 2.2 cm.
@@ -171,16 +175,20 @@ class FrameFusion:
         self.P, self._frames = np.zeros(2), 0
 
     def fuse(self, T_seed: np.ndarray, odometry_ok: bool, T_field: np.ndarray | None,
-             T_frontend: np.ndarray | None) -> FusedPose:
+             T_frontend: np.ndarray | None, trusted: bool = True) -> FusedPose:
         """Fuse one frame: ``T_seed`` (the last fused pose times the odometry increment; a constant-velocity guess
         when ``odometry_ok`` is False), ``T_field`` the field's pose (None when tracking failed or was not kept),
-        ``T_frontend`` the frontend's own pose of the frame (None when its odometry failed). Predict
-        ``P + q`` (the fallback variance without odometry), update with the field: share
-        ``k = P / (P + r)`` (0 where the field is gated out, 1 without odometry), ``P = (1 - k) P``."""
+        ``T_frontend`` the frontend's own pose of the frame (None when its odometry failed); ``trusted`` False for
+        a weak registration (:attr:`lrslam.frontend.odometry.OdometryResult.trusted`): the frame fuses as one without
+        odometry, but the frontend's chain goes on (its error belongs in the noise estimate: leaving the weak steps
+        out made the odometry look 6-7x more precise, in sigma, on TUM fr1/rpy at every 3rd frame). Predict
+        ``P + q`` (the fallback variance without odometry), update with the field: share ``k = P / (P + r)`` (0
+        where the field is gated out, 1 without odometry), ``P = (1 - k) P``."""
         c = self.cfg
         self._field = None if T_field is None else np.asarray(T_field, dtype=np.float64).copy()
         self._frontend = None if T_frontend is None else np.asarray(T_frontend, dtype=np.float64).copy()
         self._chain_ok = self._chain_ok and odometry_ok and T_frontend is not None
+        odometry_ok = odometry_ok and trusted
         self._frames += 1
         q, r, gated = self.variances()
         fallback = np.array([np.radians(c.fallback_sigma_deg) ** 2, c.fallback_sigma_m ** 2])

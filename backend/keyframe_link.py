@@ -6,6 +6,11 @@ j directly to i starting from that chain. Both come from the frontend alone -- t
 the factor is independent of the field's estimate of the same motion. They are not independent of each other
 (same images), so one is used: the direct registration when it passes its gates, else the chain, whose
 covariance is propagated increment by increment (:func:`lrslam.geometry.propagate_covariance`).
+
+A measurement is *trusted* when the registration's fitness reaches ``gates.trusted_fitness`` (for the chain: when
+every increment was trusted, :attr:`OdometryResult.trusted`). An untrusted one is still reported: the graph gets
+no factor from it (:class:`lrslam.backend.policy.GraphBackend`), the fusion's noise estimate still counts its error.
+At large motion a registration that passes its gates can be wrong by decimetres, and its fitness says so.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ _EPS = 1e-9
 class KeyframeLinkMeasurement:
     """``T_i_j`` (4, 4): keyframe j's camera in keyframe i's; ``information`` (6, 6), right perturbation,
     ``[rotation, translation]``; ``source``: ``"registration"`` or ``"chain"``; ``frames``: odometry increments
-    chained."""
+    chained; ``trusted``: see the module docstring."""
 
     i: int
     j: int
@@ -39,6 +44,7 @@ class KeyframeLinkMeasurement:
     information: np.ndarray
     source: str
     frames: int
+    trusted: bool = True
 
 
 def _covariance(information: np.ndarray) -> np.ndarray:
@@ -61,16 +67,17 @@ class KeyframeLink:
         self._T = np.eye(4)
         self._cov = np.zeros((6, 6))
         self._frames = 0
+        self._trusted = True
 
     def start(self, kf_id: int, frame: FrameLike) -> None:
         """Make ``kf_id`` (images ``frame``) the keyframe the next measurement starts from."""
         self._kf_id, self._kf_view = int(kf_id), RGBDView(*_images(frame))
-        self._T, self._cov, self._frames = np.eye(4), np.zeros((6, 6)), 0
+        self._T, self._cov, self._frames, self._trusted = np.eye(4), np.zeros((6, 6)), 0, True
 
     def state_dict(self) -> dict:
         """The previous keyframe (id, images) and the chain since it, for checkpoints."""
         return {"kf_id": self._kf_id, "kf_view": None if self._kf_view is None else self._kf_view.state(),
-                "T": self._T.copy(), "cov": self._cov.copy(), "frames": self._frames}
+                "T": self._T.copy(), "cov": self._cov.copy(), "frames": self._frames, "trusted": self._trusted}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` output."""
@@ -79,12 +86,14 @@ class KeyframeLink:
         self._T = np.asarray(state["T"], dtype=np.float64)
         self._cov = np.asarray(state["cov"], dtype=np.float64)
         self._frames = int(state["frames"])
+        self._trusted = bool(state.get("trusted", True))
 
     def accumulate(self, odo: OdometryResult) -> None:
         """Chain one frame's odometry increment (``odo.T_prev_c`` with ``odo.information``)."""
         self._cov = propagate_covariance(self._T, self._cov, odo.T_prev_c, _covariance(odo.information))
         self._T = self._T @ odo.T_prev_c
         self._frames += 1
+        self._trusted = self._trusted and odo.trusted
 
     def measure(self, kf_id: int, frame: FrameLike) -> KeyframeLinkMeasurement | None:
         """The frontend's relative pose from the previous keyframe to ``kf_id`` (images ``frame``); then
@@ -96,12 +105,16 @@ class KeyframeLink:
         reg = register_rgbd(view, self._kf_view, self._T, self.registration, self.gates)
         if reg.ok:
             out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), reg.T_tgt_src, reg.information, "registration",
-                                          self._frames)
+                                          self._frames, reg.fitness >= self.gates.trusted_fitness)
         else:
             log.info("keyframe %d -> %d registration rejected (%s): using the odometry chain of %d frames",
                      self._kf_id, kf_id, reg.reason, self._frames)
             out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), self._T.copy(),
-                                          np.linalg.inv(self._cov + _EPS * np.eye(6)), "chain", self._frames)
+                                          np.linalg.inv(self._cov + _EPS * np.eye(6)), "chain", self._frames,
+                                          self._trusted)
+        if not out.trusted:
+            log.info("keyframe %d -> %d: the frontend's %s is weak (fitness below %.2f): no odometry factor",
+                     self._kf_id, kf_id, out.source, self.gates.trusted_fitness)
         self.start(kf_id, frame)
         return out
 

@@ -97,7 +97,8 @@ class Correction:
     ``shifts``: ``{kf: (metres, degrees)}`` of each keyframe in ``poses``; ``solved``: whether the graph was
     solved; ``edges``: the verified loop closures added, as ``(i, j)`` keyframe ids (``j`` the new keyframe);
     ``link``: the frontend's direct registration ``T_i_j`` (4, 4) of the new keyframe to the previous one (None when
-    it was rejected and the odometry chain stood in, or without an odometry factor)."""
+    it was rejected and the odometry chain stood in, or without an odometry factor; a weak one is given: it adds no
+    factor, but its error belongs in the noise estimate)."""
 
     poses: dict[int, np.ndarray] = dc_field(default_factory=dict)
     remap: tuple[int, ...] = ()
@@ -236,7 +237,7 @@ class GraphBackend:
             self._add("field", i, j, inv(poses[i]) @ poses[j], info)
         # 2. Frontend factor: its own keyframe-to-keyframe estimate.
         link = self.link.measure(j, frame)
-        if "odometry" in factors and link is not None:
+        if "odometry" in factors and link is not None and link.trusted:
             self._add("odometry", link.i, link.j, link.T_i_j, link.information)
         # 3. Loops against earlier keyframes.
         loops = []

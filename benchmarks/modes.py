@@ -77,7 +77,7 @@ def _summaries(results: dict[str, dict]) -> dict[str, dict]:
         v["loops"] = ({k: float(np.mean([lp[k] for lp in loops])) for k in loops[0]} if loops else None)
         for key in ("fpt_s", "fpt_first_third_s", "fpt_last_third_s", "n_keyframes", "n_loop_closures",
                     "n_graph_solves", "n_remaps", "refinements_rejected", "frontend_ate_rmse_cm",
-                    "online_ate_rmse_cm"):
+                    "online_ate_rmse_cm", "seeds_weak", "seeds_overruled_by_field"):
             vals = [m[key] for m in ok if m.get(key) is not None]
             v[key] = float(np.mean(vals)) if vals else None
     return out
@@ -100,7 +100,8 @@ def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
     lines = [f"## {title}", "",
              "| variant | ATE RMSE cm: mean | spread | per seed | before final refinement | s/frame | first / last third | keyframes | "
              "loops kept | loops proposed / rejected (registration, map, graph) | solves | re-maps | "
-             "refinements rejected |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "refinements rejected | seeds weak / overruled |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, v in s.items():
         a = v["ate"]
         spread = f"{a.min():.2f}-{a.max():.2f}" if len(a) else "-"
@@ -111,7 +112,8 @@ def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
                      f"{_fmt(v['n_keyframes'], '{:.0f}')} | {_fmt(v['n_loop_closures'], '{:.0f}')} | "
                      f"{_loops(v['loops'])} | "
                      f"{_fmt(v['n_graph_solves'], '{:.0f}')} | {_fmt(v['n_remaps'], '{:.0f}')} | "
-                     f"{_fmt(v['refinements_rejected'], '{:.0f}')} |")
+                     f"{_fmt(v['refinements_rejected'], '{:.0f}')} | "
+                     f"{_fmt(v['seeds_weak'], '{:.0f}')} / {_fmt(v['seeds_overruled_by_field'], '{:.0f}')} |")
     if not all(k in s for k in ("field", "frontend", "fused")):
         return "\n".join(lines + [""]), True   # an ablation-only table: no promise to check
     best = min(s["field"]["mean"], s["frontend"]["mean"])

@@ -42,6 +42,7 @@ class FrameRecord:
 
     index: int
     seed_ok: bool = True
+    seed_weak: bool = False   # the odometry registered the frame with a fitness below gates.trusted_fitness
     refine_ok: bool | None = None
     refine_accepted: bool = False
     refine_iters: int = 0
@@ -143,6 +144,7 @@ class SlamRunner:
         with self.timer("seed"):
             seed = p.seeder.seed(frame, self.traj)
         rec.seed_ok = seed.ok
+        rec.seed_weak = seed.ok and seed.odometry is not None and not seed.odometry.trusted
         if seed.note:
             rec.notes.append(seed.note)
         if p.backend is not None:
@@ -178,12 +180,15 @@ class SlamRunner:
     def _fuse(self, seed: Seed, ref: Refinement | None, rec: FrameRecord) -> np.ndarray:
         """Step 2b: the odometry's seed and the field's pose (``ref``; None for a frame without depth) weighed by
         their measured noise. A refinement that started from the constant-velocity guess (the field judged the
-        odometry broken) fuses with that guess, as a frame without odometry."""
+        odometry broken), or a weak registration (fitness below ``gates.trusted_fitness``), fuses as a frame without
+        odometry: the field's word."""
         start = ref.start if ref is not None else 0
+        if rec.seed_weak:
+            rec.notes.append(f"odometry weak (fitness {seed.odometry.fitness:.2f}): the field's word")
         odometry_ok = seed.ok and start == 0
         T_field = ref.T_w_c if ref is not None and ref.ok and ref.accepted else None
         fused = self.parts.fusion.fuse(seed.candidate(start), odometry_ok, T_field,
-                                       self.parts.seeder.frontend_pose() if seed.ok else None)
+                                       self.parts.seeder.frontend_pose() if seed.ok else None, not rec.seed_weak)
         rec.fusion_gain = fused.gain
         return fused.T_w_c
 
@@ -339,6 +344,7 @@ class SlamRunner:
             "frames_without_depth": sum(not r.has_depth for r in recs),
             "mapping_poses_reverted": p.mapper.reverted_poses if p.mapper is not None else 0,
             "seeds_overruled_by_field": sum(r.refine_start > 0 for r in recs),
+            "seeds_weak": sum(r.seed_weak for r in recs),
             "fusion_sigmas": p.fusion.sigmas() if p.fusion is not None else None,
             "refine_iters_mean": float(np.mean([r.refine_iters for r in recs if r.refine_ok is not None] or [0])),
         }

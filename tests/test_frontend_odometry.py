@@ -182,9 +182,11 @@ def test_split_config_keeps_every_flat_default_once():
     d = OdometryConfig().model_dump()
     registration, gates = d.pop("registration"), d.pop("gates")
     assert d.pop("model") == ModelTrackingConfig().model_dump()   # a section added later, not from the flat config
+    assert gates.pop("trusted_fitness") == 0.55                     # a gate added later
     assert not (registration.keys() & gates.keys() or registration.keys() & d.keys() or gates.keys() & d.keys())
     assert registration | gates | d == FLAT_DEFAULTS
-    assert RegistrationConfig().model_dump() == registration and RegistrationGates().model_dump() == gates
+    assert RegistrationConfig().model_dump() == registration
+    assert RegistrationGates().model_dump() == gates | {"trusted_fitness": 0.55}
 
 
 @pytest.mark.parametrize("model, key", [(OdometryConfig, "min_fitness"), (OdometryConfig, "refine_iterations"),
@@ -204,3 +206,19 @@ def test_odometry_sections_are_typed():
         OdometryConfig(registration={"min_fitness": 0.3})
     with pytest.raises(ValueError, match="depth_min"):
         OdometryConfig(registration={"depth_min": 5.0})
+
+
+def test_a_weak_registration_is_kept_but_not_trusted(sequence):
+    """``gates.trusted_fitness``: a registration that passes the gates but whose fitness is below it is the
+    frontend's estimate all the same (same pose) and carries ``trusted`` False; the first frame is trusted."""
+    poses = {}
+    for trusted_fitness in (0.0, 1.0):
+        odo = Odometry(OdometryConfig(gates=RegistrationGates(trusted_fitness=trusted_fitness)), sequence[0].K,
+                       *sequence[0].depth.shape)
+        first = odo.reset(T_W_C_REF, sequence[0])
+        assert first.trusted
+        res = [odo.track(f) for f in sequence[1:4]]
+        assert all(r.ok for r in res) and all(0 < r.fitness < 1 for r in res)
+        assert all(r.trusted is (trusted_fitness == 0.0) for r in res)
+        poses[trusted_fitness] = [r.T_w_c for r in res]
+    np.testing.assert_allclose(poses[0.0], poses[1.0], atol=1e-5)   # Open3D threads: not bit for bit

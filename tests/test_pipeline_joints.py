@@ -21,8 +21,8 @@ INFO = diagonal_information(np.radians(0.5), 0.01)
 class _Link:
     """Frontend measurements of a fixed (biased) relative motion between consecutive keyframes."""
 
-    def __init__(self, T_i_j):
-        self.T, self.last = T_i_j, None
+    def __init__(self, T_i_j, trusted=True):
+        self.T, self.last, self.trusted = T_i_j, None, trusted
 
     def start(self, kf, frame):
         self.last = kf
@@ -31,7 +31,7 @@ class _Link:
         pass
 
     def measure(self, kf, frame):
-        out = KeyframeLinkMeasurement(self.last, kf, self.T, INFO, "registration", 1)
+        out = KeyframeLinkMeasurement(self.last, kf, self.T, INFO, "registration", 1, self.trusted)
         self.last = kf
         return out
 
@@ -216,6 +216,52 @@ def test_keyframe_link_falls_back_to_the_chained_odometry_with_propagated_covari
     assert link.measure(3, blank).frames == 0
 
 
+def test_a_weak_keyframe_link_is_no_factor_but_still_reported():
+    """``gates.trusted_fitness``: the frontend's keyframe-to-keyframe measurement, when weak, adds no odometry
+    factor to the graph (nor to the recorded measurements the final refinement solves), but its registration is
+    still handed on (the fusion's noise estimate counts the frontend's errors, weak ones included)."""
+    T = make_pose(np.eye(3), [0.12, 0.0, 0.0])
+    for trusted in (True, False):
+        backend = GraphBackend(BackendConfig(), PoseGraph(GraphConfig()), _Loops(), _Link(T, trusted), INFO)
+        backend.start(_frame(0), np.eye(4))
+        corr = backend.on_keyframe(_frame(1), {0: np.eye(4), 1: T}, INFO)
+        np.testing.assert_array_equal(corr.link, T)
+        kinds = [f.kind for f in backend.measurements]
+        assert kinds.count("odometry") == (1 if trusted else 0) and kinds.count("field") == 1
+
+
+def test_keyframe_link_trust_follows_the_fitness_and_the_chain():
+    """A direct registration is trusted when its fitness reaches ``trusted_fitness``; the odometry chain that
+    stands in for a failed one, when every chained increment was trusted."""
+    from frontend_fixtures import T_W_C_REF, make_frame, make_room
+    from lrslam.backend.keyframe_link import KeyframeLink
+    from lrslam.frontend.odometry import OdometryConfig, OdometryResult
+    from lrslam.frontend.registration import RegistrationGates
+
+    room = make_room()
+    step = exp_se3(np.array([0.0, 0.01, 0.0, 0.02, 0.0, 0.01]))
+    f0, f1 = make_frame(room, T_W_C_REF, index=0), make_frame(room, T_W_C_REF @ step, index=1)
+    for trusted_fitness, trusted in ((0.0, True), (1.0, False)):
+        cfg = OdometryConfig(gates=RegistrationGates(trusted_fitness=trusted_fitness))
+        link = KeyframeLink(cfg.registration, cfg.gates)
+        link.start(0, f0)
+        link.accumulate(OdometryResult(1, np.eye(4), step, 0, INFO, True, 0.9, 0.0, "", step))
+        m = link.measure(1, f1)
+        assert m.source == "registration" and m.trusted is trusted
+    blank = Frame(0, 0.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.float32),
+                  np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]))
+    cfg = OdometryConfig()
+    for flags in ((True, True), (True, False)):
+        link = KeyframeLink(cfg.registration, cfg.gates)
+        link.start(0, blank)
+        for k, flag in enumerate(flags, start=1):
+            link.accumulate(OdometryResult(k, np.eye(4), step, k - 1, INFO, True, 0.9, 0.0, "", step, "", flag))
+        m = link.measure(2, blank)
+        assert m.source == "chain" and m.trusted is all(flags)
+    link.accumulate(OdometryResult(3, np.eye(4), step, 2, INFO, True, 0.9, 0.0, "", step))
+    assert link.measure(3, blank).trusted          # the chain's trust restarts at the keyframe
+
+
 def test_a_loop_correction_the_map_disputes_is_dropped():
     """``backend.loop_field_check``: the new keyframe's field loss at the pose a correcting loop implies
     decides: worse than at the current pose -> the loop is dropped (counted, no solve); better -> kept and
@@ -301,3 +347,29 @@ def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
     field = _Field([1.0, 0.5])
     FieldRefiner(field).refine(_frame(2), agree)
     assert field.asked == []                                  # no alternative: no extra render
+
+
+def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
+    """The runner hands the odometry's trust to the fusion: with ``trusted_fitness`` 1 every registration is weak
+    (counted in ``seeds_weak``) and every refined frame takes the field's share 1; at the default none is weak on
+    this easy sequence and the fusion weighs the two."""
+    from run_fixtures import TINY, synthetic_room
+    from lrslam.datasets.registry import open_sequence
+    from lrslam.pipeline.runner import SlamRunner
+
+    seq = open_sequence(synthetic_room(tmp_path / "room", n_frames=6, seed=3))
+    frames = [seq[i] for i in range(len(seq))]
+    f0 = frames[0]
+    gains = {}
+    for trusted_fitness in (1.0, 0.55):
+        cfg = build_config("synthetic", mode="fused", deterministic=True,
+                           overrides=TINY + [f"odometry.gates.trusted_fitness={trusted_fitness}"])
+        runner = SlamRunner(cfg, f0.K, f0.height, f0.width, seq.bound)
+        runner.start(f0, f0.T_w_c_gt)
+        recs = [runner.step(f) for f in frames[1:]]
+        refined = [r for r in recs if r.refine_accepted]
+        assert refined
+        assert sum(r.seed_weak for r in recs) == (len(recs) if trusted_fitness == 1.0 else 0)
+        gains[trusted_fitness] = {r.fusion_gain for r in refined}
+    assert gains[1.0] == {(1.0, 1.0)}
+    assert all(g != (1.0, 1.0) for g in gains[0.55])
