@@ -352,7 +352,8 @@ def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
 def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
     """The runner hands the odometry's trust to the fusion: with ``trusted_fitness`` 1 every registration is weak
     (counted in ``seeds_weak``) and every refined frame takes the field's share 1; at the default none is weak on
-    this easy sequence and the fusion weighs the two."""
+    this easy sequence and the fusion weighs the two (Open3D runs threaded here: which frames the field's seed
+    arbitration overrules may vary, so those are left out)."""
     from run_fixtures import TINY, synthetic_room
     from lrslam.datasets.registry import open_sequence
     from lrslam.pipeline.runner import SlamRunner
@@ -367,7 +368,9 @@ def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
         runner = SlamRunner(cfg, f0.K, f0.height, f0.width, seq.bound)
         runner.start(f0, f0.T_w_c_gt)
         recs = [runner.step(f) for f in frames[1:]]
-        refined = [r for r in recs if r.refine_accepted]
+        # frames refined from the odometry's own seed (a failed odometry, or one the field overruled, takes the
+        # field's word whatever the fitness)
+        refined = [r for r in recs if r.refine_accepted and r.refine_start == 0 and r.seed_ok]
         assert refined
         assert sum(r.seed_weak for r in recs) == (len(recs) if trusted_fitness == 1.0 else 0)
         gains[trusted_fitness] = {r.fusion_gain for r in refined}
