@@ -105,7 +105,7 @@ class KeyframeLink:
         reg = register_rgbd(view, self._kf_view, self._T, self.registration, self.gates)
         if reg.ok:
             out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), reg.T_tgt_src, reg.information, "registration",
-                                          self._frames, reg.fitness >= self.gates.trusted_fitness)
+                                          self._frames, reg.trusted)
         else:
             log.info("keyframe %d -> %d registration rejected (%s): using the odometry chain of %d frames",
                      self._kf_id, kf_id, reg.reason, self._frames)

@@ -88,8 +88,8 @@ class OdometryResult:
         reason: why not ok, or a note ("first frame"); "" otherwise.
         attempt: which attempt succeeded ("velocity", "zero-motion", "<method>"; "+model" appended when the
             frame-to-model refinement was kept) or "" when none did.
-        trusted: ok and the fitness at least ``gates.trusted_fitness`` (a weak registration is the frontend's
-            own estimate but no measurement for the fusion or the graph).
+        trusted: ok and the registration trusted (:attr:`RegistrationResult.trusted`: a weak registration is
+            the frontend's own estimate but no measurement for the fusion or the graph).
     """
 
     frame_index: int
@@ -225,11 +225,10 @@ class Odometry:
             # 6. Fallback to the prediction.
             info = fallback_information(gates)
             log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
-        fitness = reg.fitness if reg is not None else 0.0
-        result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok, fitness,
+        result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
+                                reg.fitness if reg is not None else 0.0,
                                 reg.inlier_rmse if reg is not None else float("inf"), reason,
-                                inv(self._T_w_last) @ T_w_c, attempt,
-                                ok and fitness >= self.cfg.gates.trusted_fitness)
+                                inv(self._T_w_last) @ T_w_c, attempt, ok and reg.trusted)
 
         if self._model is not None and ok and problem is None:
             self._model.integrate(view.rgb, view.depth, T_w_c)

@@ -143,6 +143,8 @@ class RegistrationResult:
         inlier_rmse: metres (inf when unknown).
         ok: all gates passed.
         reason: why not ok ("" when ok).
+        trusted: ok and the fitness at least ``gates.trusted_fitness`` (a weak registration is no measurement
+            for the fusion or the graph).
     """
 
     T_tgt_src: np.ndarray
@@ -151,6 +153,7 @@ class RegistrationResult:
     inlier_rmse: float
     ok: bool
     reason: str = ""
+    trusted: bool = False
 
 
 def fallback_information(gates: RegistrationGates) -> np.ndarray:
@@ -217,7 +220,7 @@ def register_rgbd(source: FrameLike | RGBDView, target: FrameLike | RGBDView, in
         return fail(f"correction of the initial guess too large ({d_t:.3f} m, {d_r:.1f} deg)", q.fitness,
                     q.inlier_rmse)
     info = q.information * (cfg.information_sigma / max(cfg.information_sigma, q.inlier_rmse)) ** 2
-    return RegistrationResult(T, info, q.fitness, q.inlier_rmse, True, "")
+    return RegistrationResult(T, info, q.fitness, q.inlier_rmse, True, "", q.fitness >= gates.trusted_fitness)
 
 
 def _one_line(e: Exception) -> str:
