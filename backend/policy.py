@@ -50,11 +50,14 @@ class BackendConfig(StrictModel):
     remap_min_shift_m / remap_keyframes: a solve that moved some keyframe more than this re-maps the field over
     (at most) that many most-moved keyframes (``field.mapping.remap_iters`` iterations).
     calibrate / loop_max_chi2 / final_refine: see the fields.
-    loop_field_check: with a field, a loop that would correct the trajectory is kept only when the map agrees:
-    the new keyframe's tracking loss at the pose the loop implies (``T_w_i T_i_j``) is at most
+    loop_field_check (off by default): with a field, a loop that would correct the trajectory is kept only when
+    the map agrees: the new keyframe's tracking loss at the pose the loop implies (``T_w_i T_i_j``) is at most
     ``(1 + loop_field_tolerance)`` times its loss at the current pose, on the same rays; otherwise the loop is
-    dropped (logged and counted): the frontend's registration of two views is less precise than tracking
-    against the whole map, and a loop the map disputes would pull an accurate trajectory toward its error."""
+    dropped (logged and counted). Off because the map near the camera was built from the same drifted poses the
+    loop would correct, and sides with them: on the full TUM fr1/xyz it disputed 163-172 of 375 loops, among them
+    registrations at fitness 0.79-0.93 that were right about a 2-3 cm drift. Loops are judged by geometry (the
+    registration's gates) and by the graph's consistency (``loop_max_chi2`` on calibrated informations,
+    ``calibrate``) instead; docs/BENCHMARKS.md sections 14-15."""
 
     factors: list[Literal["odometry", "field", "loop"]] = ["odometry", "field", "loop"]
     optimise: Literal["on_loop", "every_keyframe"] = "on_loop"
@@ -64,13 +67,22 @@ class BackendConfig(StrictModel):
     write_min_shift_deg: float = Field(0.01, ge=0)
     remap_min_shift_m: float = Field(0.005, ge=0)
     remap_keyframes: int = Field(20, gt=0)
-    loop_field_check: bool = True
+    loop_field_check: bool = False
     loop_field_tolerance: float = Field(0.0, ge=0)
-    calibrate: bool = Field(False, description="with the run's measured noise (fused mode), every factor's "
+    calibrate: bool = Field(True, description="with the run's measured noise (fused mode), every factor's "
                             "information calibrated from it (lrslam.backend.calibration) before each online solve "
-                            "(the final refinement always is). Off: on the real excerpts the estimate states the "
-                            "registrations 16-53x too precise (chi2 vs ground truth) and the loop solves it let "
-                            "through cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 cm (3 seeds)")
+                            "(the final refinement always is). The sources' own informations are off by an order "
+                            "of magnitude either way (fr1/xyz against ground truth: the field's 26x too strong, so "
+                            "the loops could not move it; 3 seeds with the map's loop check off: fr1/xyz 1.30 -> "
+                            "1.10 cm, TUM excerpt 2.30 -> 2.26; docs/BENCHMARKS.md section 15). With the map's check "
+                            "on it cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 (12-05)")
+    calibrate_registrations: bool = Field(True, description="with calibrate: the registrations' (odometry and "
+                                          "loop factors) informations are calibrated too. False: they keep the "
+                                          "information their registration states (its point-to-plane Hessian at "
+                                          "the measured inlier RMSE, at least registration.information_sigma) and "
+                                          "only the field's is calibrated; for data whose colour is not registered "
+                                          "to its depth (7-Scenes), where the noise estimate compares two RGB-D "
+                                          "registrations that share that error (lrslam.backend.calibration)")
     loop_max_chi2: float = Field(22.46, ge=0, description="after a solve, a loop whose normalised squared residual "
                                  "exceeds this (chi-square, 6 dof: 22.46 is its 99.9 % point) is removed as "
                                  "inconsistent with the graph and the graph re-solved, worst first; 0 = off")
@@ -270,7 +282,7 @@ class GraphBackend:
             self.graph.set_measurement("field", a, b, inv(poses[a]) @ poses[b])
         noise = self._calibration()
         if noise is not None:
-            for f in calibrated(self.measurements, noise):
+            for f in calibrated(self.measurements, noise, self.cfg.calibrate_registrations):
                 self.graph.set_information(f.kind, f.i, f.j, f.information)
         self.n_solves += 1
         before = len(self.rejected_loops)
@@ -322,7 +334,8 @@ class GraphBackend:
         """:attr:`measurements` with the informations the graph weighs them by: calibrated by the last noise given
         (``calibrate``, once measured), else as their sources stated them."""
         cal = self._calibration()
-        return calibrated(self.measurements, cal) if cal is not None else list(self.measurements)
+        return (calibrated(self.measurements, cal, self.cfg.calibrate_registrations) if cal is not None
+                else list(self.measurements))
 
     def _calibration(self, online: bool = True) -> GapNoise | None:
         """The run's measured noise to weigh the factors by: None before it is measured, and for the online solves

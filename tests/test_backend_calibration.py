@@ -97,6 +97,26 @@ def test_calibrated_factors_have_unit_normalised_residuals():
     assert 0.8 < np.mean(pose_chi2) < 1.25, np.mean(pose_chi2)
 
 
+def test_registrations_can_keep_their_stated_informations():
+    """``calibrate_registrations=False`` (the 7-Scenes presets): odometry and loop factors keep the information
+    their registration stated, to the last bit, while the field's are calibrated as with it on; the backend weighs
+    (and reports) its factors that way."""
+    truth, records, noise, _ = _stream(120, seed=3)
+    records.append(FactorRecord("loop", 0, 60, inv(truth[0]) @ truth[60], H_STATED.copy()))
+    both, fields_only = calibrated(records, noise), calibrated(records, noise, registrations=False)
+    kinds = {f.kind for f in records}
+    assert {"odometry", "loop", "field", "field_pose"} <= kinds
+    for f, a, b in zip(records, both, fields_only):
+        if f.kind in ("odometry", "loop"):
+            assert np.array_equal(b.information, f.information) and not np.allclose(a.information, f.information)
+        else:
+            assert np.array_equal(b.information, a.information)
+    backend = _backend(records, 120, truth[0], calibrate=True, calibrate_registrations=False)
+    backend._noise = noise
+    reported = backend.calibrated_measurements()
+    assert all(np.array_equal(r.information, b.information) for r, b in zip(reported, fields_only))
+
+
 def _backend(records: list[FactorRecord], n: int, first: np.ndarray, **cfg) -> GraphBackend:
     """A GraphBackend holding ``records`` over keyframes 0..n-1 (no images: refine_all needs none); the final
     refinement is on and runs whatever the field's share (``final_refine_when="always"``) unless ``cfg`` says

@@ -126,3 +126,29 @@ def test_verification_registration_keeps_the_loop_defaults():
     assert part.gates == RegistrationGates(max_translation=0.5, max_rotation=25.0)
     with pytest.raises(ValueError):
         LoopClosureConfig.model_validate({"gates": {"method": "icp"}})
+
+
+def test_seven_scenes_loops_are_registered_on_depth_alone(scene):
+    """7-Scenes colour is not registered to its depth: its presets register a loop on depth alone (ICP), so a
+    colour image shifted 8 px against its depth (both keyframes, as a misplaced colour camera) leaves the loop as
+    it was, while the RGB-D registration's photometric term pulls it off by more than twice as much."""
+    from dataclasses import replace
+
+    from lrslam.pipeline.config import build_config
+    from lrslam.pipeline.determinism import open3d_threads
+
+    _, frames = scene
+    shifted = [replace(f, rgb=np.roll(f.rgb, 8, axis=1)) for f in frames]
+    truth = inv(frames[0].T_w_c_gt) @ frames[6].T_w_c_gt
+    drift = exp_se3(np.array([0.01, 0.03, -0.02, 0.04, -0.02, 0.03]))
+    errors = {}
+    with open3d_threads(True):
+        for preset in ("7scenes-cpu", "7scenes", "tum-cpu"):
+            cfg = build_config(preset).loop_closure
+            for name, fs in (("registered", frames), ("shifted", shifted)):
+                loops = _closer(fs, cfg).detect(6, fs[6], _poses(fs, fs[6].T_w_c_gt @ drift))
+                assert [(c.i, c.j) for c in loops] == [(0, 6)], (preset, name)
+                errors[preset, name] = pose_error(loops[0].T_i_j, truth)[0]
+    for preset in ("7scenes-cpu", "7scenes"):
+        assert errors[preset, "shifted"] == errors[preset, "registered"] < 0.003, errors
+    assert errors["tum-cpu", "shifted"] > 2 * errors["7scenes-cpu", "shifted"], errors

@@ -196,8 +196,12 @@ def test_every_rgbd_dataset_gets_the_one_set_of_cpu_settings(tmp_path):
         for preset in ("7scenes-cpu", "rosbag-cpu", "replica-cpu", "scannet-cpu"):
             cfg = build_config(preset, mode=mode).model_dump(mode="json")
             for key in work:
-                same = {k: v for k, v in cfg[key].items() if k != "loop_field_check"}
-                assert same == {k: v for k, v in ref[key].items() if k != "loop_field_check"}, (preset, mode, key)
+                want = dict(ref[key])
+                if preset == "7scenes-cpu" and key == "backend":
+                    # what is true of 7-Scenes (colour not registered to its depth; configs/dataset/7scenes-cpu.yaml)
+                    assert cfg[key].pop("calibrate_registrations") is False
+                    del want["calibrate_registrations"]
+                assert cfg[key] == want, (preset, mode, key)
 
 
 def test_dataset_preset_settings_per_mode(tmp_path):
