@@ -76,13 +76,15 @@ class BackendConfig(StrictModel):
                             "the loops could not move it; 3 seeds with the map's loop check off: fr1/xyz 1.30 -> "
                             "1.10 cm, TUM excerpt 2.30 -> 2.26; docs/BENCHMARKS.md section 15). With the map's check "
                             "on it cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 (12-05)")
-    calibrate_registrations: bool = Field(True, description="with calibrate: the registrations' (odometry and "
-                                          "loop factors) informations are calibrated too. False: they keep the "
-                                          "information their registration states (its point-to-plane Hessian at "
-                                          "the measured inlier RMSE, at least registration.information_sigma) and "
-                                          "only the field's is calibrated; for data whose colour is not registered "
-                                          "to its depth (7-Scenes), where the noise estimate compares two RGB-D "
-                                          "registrations that share that error (lrslam.backend.calibration)")
+    calibrate_registrations: bool = Field(True, description="with calibrate, in the online solves: the "
+                                          "registrations' (odometry and loop factors) informations are calibrated "
+                                          "too (the final refinement always calibrates every factor). False: they "
+                                          "keep the information their registration states (its point-to-plane "
+                                          "Hessian at the measured inlier RMSE, at least "
+                                          "registration.information_sigma) and only the field's is calibrated; "
+                                          "for data whose colour is not registered to its depth (7-Scenes), where "
+                                          "the noise estimate compares two RGB-D registrations that share that "
+                                          "error (lrslam.backend.calibration)")
     loop_max_chi2: float = Field(22.46, ge=0, description="after a solve, a loop whose normalised squared residual "
                                  "exceeds this (chi-square, 6 dof: 22.46 is its 99.9 % point) is removed as "
                                  "inconsistent with the graph and the graph re-solved, worst first; 0 = off")
