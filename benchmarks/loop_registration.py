@@ -87,11 +87,12 @@ def main() -> int:
             views[i] = as_view(seq[i]).downsampled(lc.downsample)
         return views[i]
 
-    rows: dict[str, list[tuple]] = {name: [] for name in _settings(lc.registration)}
+    settings = _settings(lc.registration)
+    rows: dict[str, list[tuple]] = {name: [] for name in settings}
     with open3d_threads(True):
         for i, j in pairs:
             predicted, truth = inv(frontend[i]) @ frontend[j], inv(gt[i]) @ gt[j]
-            for name, reg in _settings(lc.registration).items():
+            for name, reg in settings.items():
                 t0 = time.perf_counter()
                 res = register_rgbd(view(j), view(i), predicted, reg, lc.gates)
                 ms = 1000 * (time.perf_counter() - t0)

@@ -280,8 +280,9 @@ def test_a_loop_correction_the_map_disputes_is_dropped():
             np.testing.assert_allclose(candidates[1], poses[0] @ T_0_7)   # the loop's pose of keyframe 7
             return [1.0, 0.8 if map_prefers_loop else 1.3]
 
-        backend = GraphBackend(BackendConfig(factors=["field", "loop"], loop_field_check=True), PoseGraph(GraphConfig()), loops,
-                               _Link(make_pose(np.eye(3), [0.1, 0.0, 0.0])), INFO, pose_losses)
+        backend = GraphBackend(BackendConfig(factors=["field", "loop"], loop_field_check=True),
+                               PoseGraph(GraphConfig()), loops, _Link(make_pose(np.eye(3), [0.1, 0.0, 0.0])), INFO,
+                               pose_losses)
         backend.start(_frame(0), poses[0])
         for k in range(1, 8):
             corr = backend.on_keyframe(_frame(k), {i: poses[i] for i in range(k + 1)}, INFO)
