@@ -76,9 +76,9 @@ class BackendConfig(StrictModel):
                             "the loops could not move it; 3 seeds with the map's loop check off: fr1/xyz 1.30 -> "
                             "1.10 cm, TUM excerpt 2.30 -> 2.26; docs/BENCHMARKS.md section 15). With the map's check "
                             "on it cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 (12-05)")
-    calibrate_registrations: bool = Field(True, description="with calibrate, in the online solves: the "
+    calibrate_registrations: bool = Field(True, description="with calibrate: the "
                                           "registrations' (odometry and loop factors) informations are calibrated "
-                                          "too (the final refinement always calibrates every factor). False: they "
+                                          "too, in the online solves and the final refinement. False: they "
                                           "keep the information their registration states (its point-to-plane "
                                           "Hessian at the measured inlier RMSE, at least "
                                           "registration.information_sigma) and only the field's is calibrated; "
@@ -317,7 +317,7 @@ class GraphBackend:
         graph.add_keyframe(ids[0], poses[ids[0]])
         for k in ids[1:]:
             graph.add_keyframe(k)
-        records = calibrated(self.measurements, cal)
+        records = calibrated(self.measurements, cal, self.cfg.calibrate_registrations)
         absolute = any(f.kind == "field_pose" for f in records)
         rejected = set(self.rejected_loops)
         for f in records:

@@ -236,3 +236,22 @@ def test_final_refinement_by_default_only_where_the_field_is_gated():
     corr = _backend(records, N, truth[0], final_refine_when="field_gated").refine_all(poses, gated)
     assert corr.solved and corr.poses
     assert not _backend(records, N, truth[0], final_refine=False).refine_all(poses, gated).solved
+
+
+def test_final_refinement_keeps_the_stated_registration_informations_when_told():
+    """``calibrate_registrations=False`` holds in the final refinement too (it was calibrating every factor): its
+    solution is the one of a fully calibrated refinement whose measured odometry noise equals the registrations'
+    stated one (their scale 1, so only the field's weights change), and differs from the calibrated one."""
+    truth, records, noise, chained = _stream(N, seed=4, cov_scale=DRIFT)
+    poses = dict(enumerate(chained))
+    stated = np.linalg.inv(H_STATED / DRIFT)
+    as_stated = GapNoise(np.array([np.diag(stated)[:3].mean(), np.diag(stated)[3:].mean()]), noise.field, True)
+    assert np.allclose(registration_scale([H_STATED / DRIFT], as_stated.odometry), 1.0)
+    kept = _backend(records, N, truth[0], calibrate_registrations=False).refine_all(poses, noise)
+    reference = _backend(records, N, truth[0]).refine_all(poses, as_stated)
+    calibrated_all = _backend(records, N, truth[0]).refine_all(poses, noise)
+    assert kept.solved and reference.solved and calibrated_all.solved
+    gap = max(np.abs(kept.poses[k] - calibrated_all.poses[k]).max() for k in kept.poses)
+    assert gap > 1e-3, gap
+    for k in range(1, N):
+        assert np.allclose(kept.poses[k], reference.poses[k], atol=1e-9), k
