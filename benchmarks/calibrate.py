@@ -13,6 +13,13 @@ Sources, from one fused run in this process (``lrslam run``'s parts, instrumente
 For each: n, mean and median of chi2 / 6, and the RMS error in cm and degrees. A source with mean chi2 / 6 far
 above 1 is over-confident (the fusion trusts it too much), far below 1 under-confident.
 
+A second table checks the run's own noise estimate (:class:`lrslam.backend.frame_fusion.NoiseEstimate`): per
+keyframe gap it compares three estimates of the same motion (the field's, the frontend's chain of frame-to-frame
+steps, the frontend's direct keyframe registration) without ground truth, taking the chain and the registration
+as equally precise. The table gives each one's real error per axis over a gap (sigma, against ground truth), the
+run's final estimate beside it, and the correlation of the chain's and the registration's errors (the estimate
+cannot see what they share).
+
 Usage::
 
     python benchmarks/calibrate.py SEQUENCE [-c PRESET] [--set key=value ...] [--max-frames N] [--threads N]
@@ -62,6 +69,62 @@ def _instrument(runner, out: list[_Measurement]) -> None:
     parts.seeder.seed, parts.refiner.refine = seed, refine
 
 
+@dataclass
+class _Gaps:
+    """The noise estimate's inputs per keyframe gap: ``rows`` of (i, j, {source: T_i_j or None}); ``frame``: the
+    index of the frame being processed (set by the caller)."""
+
+    rows: list
+    frame: int = 0
+    last_keyframe: int = 0
+
+
+def _record_gaps(runner, gaps: _Gaps) -> None:
+    """Wrap the fusion's noise estimate so each keyframe gap's three motion estimates land in ``gaps``."""
+    noise = runner.parts.fusion.noise
+    add = noise.add
+
+    def recorded(field, chain, registration, frames):
+        gaps.rows.append((gaps.last_keyframe, gaps.frame,
+                          {"field": field, "chain": chain, "registration": registration}))
+        gaps.last_keyframe = gaps.frame
+        return add(field, chain, registration, frames)
+
+    noise.add = recorded
+
+
+def _gap_table(gaps: _Gaps, gt: dict[int, np.ndarray], estimate: dict[str, np.ndarray]) -> list[str]:
+    """Lines of the gap table: per source its real per-axis sigma over a gap (deg, cm) against ``gt``, the
+    run's estimate (``estimate``: NoiseEstimate.variances()) and the chain-registration error correlation."""
+    from lrslam.geometry import inv, log_se3
+
+    errors: dict[str, list[np.ndarray]] = {"field": [], "chain": [], "registration": []}
+    paired = []
+    for i, j, est in gaps.rows:
+        if i not in gt or j not in gt:
+            continue
+        true = inv(gt[i]) @ gt[j]
+        e = {k: None if T is None else log_se3(inv(true) @ T) for k, T in est.items()}
+        for k, x in e.items():
+            if x is not None:
+                errors[k].append(x)
+        if e["chain"] is not None and e["registration"] is not None:
+            paired.append((e["chain"][3:], e["registration"][3:]))
+    sigma = lambda x: (np.degrees(np.sqrt(np.mean(x[:, :3] ** 2))), 100 * np.sqrt(np.mean(x[:, 3:] ** 2)))  # noqa: E731
+    est = {"field": estimate["field"], "chain": estimate["odometry"], "registration": estimate["odometry"]}
+    lines = [f"{'gap source':16s} {'n':>5s} {'deg':>8s} {'cm':>8s}   {'run estimate deg':>16s} {'cm':>8s}"]
+    for k, rows in errors.items():
+        if not rows:
+            continue
+        d, c = sigma(np.stack(rows))
+        lines.append(f"{k:16s} {len(rows):5d} {d:8.3f} {c:8.3f}   {np.degrees(np.sqrt(est[k][0])):16.3f} "
+                     f"{100 * np.sqrt(est[k][1]):8.3f}")
+    a, b = (np.concatenate(x) for x in zip(*paired)) if paired else (np.zeros(1), np.zeros(1))
+    if a.std() > 0 and b.std() > 0:
+        lines.append(f"chain-registration translation error correlation: {np.corrcoef(a, b)[0, 1]:.2f}")
+    return lines
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", type=Path)
@@ -78,6 +141,7 @@ def main() -> int:
     from lrslam.evaluation.factors import factor_chi2
     from lrslam.pipeline.config import build_config
     from lrslam.pipeline.config_source import default_preset
+    from lrslam.pipeline.determinism import open3d_threads
     from lrslam.pipeline.run import choose_bound
     from lrslam.pipeline.runner import SlamRunner
 
@@ -95,18 +159,26 @@ def main() -> int:
     runner = SlamRunner(cfg, first.K, first.height, first.width, bound)
     recorded: list[_Measurement] = []
     _instrument(runner, recorded)
-    runner.start(first, T0)
-    for k in range(1, n):
-        runner.step(seq[k])
-        if k % 20 == 0:
-            print(f"  frame {k}/{n}", file=sys.stderr, flush=True)
-    result = runner.finish(mesh=False)
+    gaps = _Gaps([])
+    if runner.parts.fusion is not None:
+        _record_gaps(runner, gaps)
+    with open3d_threads(cfg.deterministic):
+        runner.start(first, T0)
+        for k in range(1, n):
+            gaps.frame = k
+            runner.step(seq[k])
+            if k % 20 == 0:
+                print(f"  frame {k}/{n}", file=sys.stderr, flush=True)
+        result = runner.finish(mesh=False)
     gt_by_index = {k: gt[k] for k in range(n) if np.all(np.isfinite(gt[k]))}
     rows = factor_chi2(recorded, gt_by_index) | factor_chi2(result.factors, gt_by_index)
     print(f"\n{a.sequence.name} ({preset}{', ' + ' '.join(a.overrides) if a.overrides else ''}), {n} frames")
     print(f"{'source':16s} {'n':>5s} {'chi2/6 mean':>12s} {'median':>8s} {'rms cm':>8s} {'rms deg':>8s}")
     for kind, r in rows.items():
         print(f"{kind:16s} {r.n:5d} {r.mean:12.3f} {r.median:8.3f} {r.trans_rms_cm:8.3f} {r.rot_rms_deg:8.3f}")
+    if runner.parts.fusion is not None:
+        print("\nper keyframe gap: real error per axis (sigma) against ground truth, and the run's noise estimate")
+        print("\n".join(_gap_table(gaps, gt_by_index, runner.parts.fusion.noise.variances())))
     return 0
 
 
