@@ -28,7 +28,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from lrslam.config import StrictModel
 from lrslam.errors import InputError
 from lrslam.frontend.keyframes import view_overlap
-from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, register_rgbd
+from lrslam.frontend.registration import RegistrationConfig, RegistrationGates, RegistrationResult, register_rgbd
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
 from lrslam.geometry import checked_pose, inv, pose_error
 
@@ -65,6 +65,17 @@ class LoopClosureConfig(StrictModel):
         if isinstance(value, dict):
             return cls.model_fields[info.field_name].default.model_dump() | value
         return value
+
+    def rejection(self, res: RegistrationResult) -> str | None:
+        """Why the verification registration ``res`` does not make a loop (its own gates, then the strict
+        ``min_fitness`` / ``max_inlier_rmse``); None when it does."""
+        if not res.ok:
+            return res.reason
+        if res.fitness < self.min_fitness:
+            return f"fitness {res.fitness:.3f} < {self.min_fitness}"
+        if res.inlier_rmse > self.max_inlier_rmse:
+            return f"inlier RMSE {res.inlier_rmse:.4f} m > {self.max_inlier_rmse}"
+        return None
 
 
 @dataclass(frozen=True)
@@ -172,13 +183,8 @@ class LoopCloser:
                 stored = self._kfs[i].view
                 res = register_rgbd(view, stored, T_i_j_pred, c.registration, c.gates)
                 stored.cache.clear()  # a stored keyframe keeps its images only (its pyramid is ~1 MB at 160x120)
-                if not res.ok:
-                    reason = res.reason
-                elif res.fitness < c.min_fitness:
-                    reason = f"fitness {res.fitness:.3f} < {c.min_fitness}"
-                elif res.inlier_rmse > c.max_inlier_rmse:
-                    reason = f"inlier RMSE {res.inlier_rmse:.4f} m > {c.max_inlier_rmse}"
-                else:
+                reason = c.rejection(res)
+                if reason is None:
                     d_t, d_r = pose_error(T_i_j_pred, res.T_tgt_src)
                     log.info("loop %d-%d accepted: overlap %.2f, fitness %.3f, rmse %.4f m, correction %.3f m "
                              "%.2f deg", i, kf_id, ov, res.fitness, res.inlier_rmse, d_t, d_r)

@@ -97,7 +97,7 @@ def main() -> int:
                 res = register_rgbd(view(j), view(i), predicted, reg, lc.gates)
                 ms = 1000 * (time.perf_counter() - t0)
                 view(i).cache.clear(), view(j).cache.clear()   # each setting pays for its own clouds / pyramids
-                ok = res.ok and res.fitness >= lc.min_fitness and res.inlier_rmse <= lc.max_inlier_rmse
+                ok = lc.rejection(res) is None
                 d_t, d_r = pose_error(truth, res.T_tgt_src)
                 rows[name].append((ok, 100 * d_t, d_r, res.fitness, 100 * res.inlier_rmse, ms))
     print(f"{a.run}: {len(pairs)} loops of {a.sequence} ({preset}; preset's loop registration: "
