@@ -68,6 +68,9 @@ class ScheduleConfig(StrictModel):
         "camera leaves the lagging map behind: TUM fr1/rpy at every 3rd frame, field mode, 3 seeds: 27 cm without "
         "the wait)")
     background_wait_deg: float = Field(4.0, ge=0, description="degrees, see background_wait_m")
+    interpolate_non_keyframes: bool = Field(
+        True, description="a frame between two keyframes follows both keyframes' corrections, blended by its "
+        "position in the gap (off: the keyframe before it only, rigidly); pipeline/trajectory.py")
 
 
 class PartsConfig(StrictModel):

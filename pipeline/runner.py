@@ -99,7 +99,7 @@ class SlamRunner:
     def __init__(self, cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray,
                  timer: StageTimer | None = None) -> None:
         self.timer = timer or StageTimer()
-        self.traj = Trajectory()
+        self.traj = Trajectory(interpolate=cfg.schedule.interpolate_non_keyframes)
         self.parts: Parts = build_parts(cfg, K, height, width, bound)
         self._seeds: list[np.ndarray] = []
         self._frontend: list[np.ndarray] = []

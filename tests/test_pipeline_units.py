@@ -12,7 +12,7 @@ from lrslam.pipeline.timing import StageTimer
 
 def test_trajectory_follows_keyframe_corrections(rng):
     poses = [random_pose(rng, 1.0, 30.0) for _ in range(6)]
-    traj = Trajectory()
+    traj = Trajectory(interpolate=False)
     for i, T in enumerate(poses):
         traj.add(T, is_keyframe=i in (0, 3))
     np.testing.assert_allclose(traj.poses(), np.stack(poses), atol=1e-12)
@@ -25,6 +25,45 @@ def test_trajectory_follows_keyframe_corrections(rng):
     np.testing.assert_allclose(got[:3], np.stack(poses[:3]), atol=1e-12)
     np.testing.assert_allclose(got[3:], np.stack([C @ T for T in poses[3:]]), atol=1e-12)
     assert traj.keyframe_ids() == [0, 3]
+
+
+def test_trajectory_spreads_a_keyframe_correction_over_the_gap_before_it(rng):
+    # keyframes 0 and 4; the graph moves keyframe 4 by a world translation t: frame c of the gap moves by
+    # (c / 4) t exactly (closed form of the blend for a pure translation), frames after 4 by t (rigidly)
+    poses = [random_pose(rng, 1.0, 30.0) for _ in range(7)]
+    traj = Trajectory()
+    for i, T in enumerate(poses):
+        traj.add(T, is_keyframe=i in (0, 4))
+    np.testing.assert_allclose(traj.poses(), np.stack(poses), atol=1e-12)   # adding a keyframe moves nothing
+    t = np.array([0.03, -0.02, 0.05])
+    traj.apply_corrections({4: make_pose(np.eye(3), t) @ poses[4]})
+    got = traj.poses()
+    for c in range(7):
+        np.testing.assert_allclose(got[c][:3, :3], poses[c][:3, :3], atol=1e-12)
+        np.testing.assert_allclose(got[c][:3, 3], poses[c][:3, 3] + min(c / 4, 1.0) * t, atol=1e-12)
+    # rigidly, the old behaviour: the gap stays with keyframe 0
+    rigid = Trajectory(interpolate=False)
+    for i, T in enumerate(poses):
+        rigid.add(T, is_keyframe=i in (0, 4))
+    rigid.apply_corrections({4: make_pose(np.eye(3), t) @ poses[4]})
+    np.testing.assert_allclose(rigid.poses()[1:4], np.stack(poses[1:4]), atol=1e-12)
+
+
+def test_trajectory_interpolation_survives_a_checkpoint_and_set_pose(rng):
+    poses = [random_pose(rng, 1.0, 30.0) for _ in range(6)]
+    traj = Trajectory()
+    for i, T in enumerate(poses):
+        traj.add(T, is_keyframe=i in (0, 3))
+    T1 = random_pose(rng, 1.0, 30.0)
+    traj.set_pose(1, T1)                            # a frame of a closed gap: exactly the pose it was given
+    np.testing.assert_allclose(traj.pose(1), T1, atol=1e-12)
+    other = Trajectory()
+    other.load_state_dict(traj.state_dict())
+    C = random_pose(rng, 0.1, 5.0)
+    for t in (traj, other):
+        t.apply_corrections({3: C @ t.pose(3), 0: random_pose(rng, 0.0, 0.0) @ t.pose(0)})
+    np.testing.assert_allclose(other.poses(), traj.poses(), atol=1e-12)
+    assert not np.allclose(traj.pose(2), poses[2], atol=1e-6)     # the gap moved with keyframe 3
 
 
 def test_trajectory_set_pose_of_non_keyframe(rng):
