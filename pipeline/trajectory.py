@@ -68,7 +68,9 @@ class Trajectory:
         return idx
 
     def set_pose(self, idx: int, T_w_c: np.ndarray) -> None:
-        """Overwrite frame ``idx``'s pose (e.g. after mapping refined it); a keyframe moves its dependants."""
+        """Overwrite frame ``idx``'s pose (e.g. after mapping refined it); a keyframe moves its dependants (the
+        frames after it and, with ``interpolate``, its share of the gap before it); a non-keyframe gets exactly
+        ``T_w_c``."""
         T_w_c = orthonormalise(T_w_c)
         if idx in self._kf:
             self._kf[idx] = T_w_c.copy()
