@@ -38,7 +38,7 @@ from pydantic import Field
 
 from lrslam.backend.calibration import GapNoise
 from lrslam.config import StrictModel
-from lrslam.geometry import exp_se3, inv, log_se3
+from lrslam.geometry import blend, inv, log_se3
 
 __all__ = ["FusionConfig", "NoiseEstimate", "FrameFusion", "FusedPose"]
 
@@ -199,12 +199,12 @@ class FrameFusion:
             return FusedPose(T_seed.copy(), (0.0, 0.0))
         k = np.ones(2) if not odometry_ok else np.where(gated, 0.0, P / (P + r))
         self.P, self._gain = np.where(odometry_ok, (1 - k) * P, r), k
-        return FusedPose(T_seed @ _scaled(log_se3(inv(T_seed) @ self._field), k), (float(k[0]), float(k[1])))
+        return FusedPose(blend(T_seed, self._field, k), (float(k[0]), float(k[1])))
 
     def blend(self, T_current: np.ndarray, T_field: np.ndarray) -> np.ndarray:
         """A pose the field's mapper moved (``T_current`` -> ``T_field``, both (4, 4)) moves by the field's last
         share only."""
-        return np.asarray(T_current, dtype=np.float64) @ _scaled(log_se3(inv(T_current) @ T_field), self._gain)
+        return blend(T_current, T_field, self._gain)
 
     def on_keyframe(self, T_registration: np.ndarray | None) -> None:
         """The last fused frame is a keyframe: add its gap's estimates to the noise estimate
@@ -257,8 +257,3 @@ class FrameFusion:
         self._kf_field, self._kf_frontend = arr(state["kf_field"]), arr(state["kf_frontend"])
         self._field, self._frontend = arr(state["field"]), arr(state["frontend"])
         self._chain_ok, self._frames = bool(state["chain_ok"]), int(state["frames"])
-
-
-def _scaled(xi: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """``exp`` of the 6-vector ``xi`` with its rotation part scaled by ``k[0]`` and its translation by ``k[1]``."""
-    return exp_se3(np.concatenate([k[0] * xi[:3], k[1] * xi[3:]]))

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "make_pose", "constant_velocity", "checked_pose", "inv", "rot_to_quat", "quat_to_rot", "pose_from_tum", "pose_to_tum", "exp_se3", "log_se3",
     "pose_error", "random_pose", "is_valid_pose", "relative", "hat", "adjoint", "diagonal_information",
-    "propagate_covariance", "orthonormalise", "between_residual",
+    "propagate_covariance", "orthonormalise", "between_residual", "blend",
 ]
 
 
@@ -158,6 +158,16 @@ def log_se3(T: np.ndarray) -> np.ndarray:
         k = (1 - half * np.cos(half) / np.sin(half)) / theta**2
         V_inv = np.eye(3) - 0.5 * W + k * W @ W
     return np.concatenate([w, V_inv @ T[:3, 3]])
+
+
+def blend(T_a: np.ndarray, T_b: np.ndarray, k) -> np.ndarray:
+    """The pose a share ``k`` of the way from ``T_a`` to ``T_b`` (both (4, 4)) along the SE(3) geodesic:
+    ``T_a exp(k log(T_a^-1 T_b))``; ``k`` a scalar, or ``(rotation share, translation share)`` scaling the two
+    blocks of the log separately. ``k = 0`` gives ``T_a``, ``k = 1`` gives ``T_b``."""
+    k = np.broadcast_to(np.asarray(k, dtype=np.float64), (2,))
+    T_a = np.asarray(T_a, dtype=np.float64)
+    xi = log_se3(inv(T_a) @ T_b)
+    return T_a @ exp_se3(np.concatenate([k[0] * xi[:3], k[1] * xi[3:]]))
 
 
 def between_residual(T_meas: np.ndarray, information: np.ndarray, T_other: np.ndarray) -> tuple[np.ndarray, float]:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lrslam.geometry import exp_se3, inv, log_se3, orthonormalise, pose_error
+from lrslam.geometry import blend, inv, orthonormalise, pose_error
 
 __all__ = ["Trajectory"]
 
@@ -108,7 +108,7 @@ class Trajectory:
         if b is None or not self.interpolate:
             return A
         B = self._kf[b] @ self._rel_next[idx]
-        return orthonormalise(A @ exp_se3((idx - a) / (b - a) * log_se3(inv(A) @ B)))
+        return orthonormalise(blend(A, B, (idx - a) / (b - a)))
 
     def last_motion(self) -> tuple[float, float]:
         """Motion between the last two frames: (metres, degrees); (0, 0) with fewer than two frames."""

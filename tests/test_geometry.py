@@ -94,3 +94,12 @@ def test_propagate_covariance_is_the_first_order_composition(rng):
     A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
     C1, C2 = A @ A.T, B @ B.T
     np.testing.assert_allclose(g.propagate_covariance(T_ab, C1, T_bc, C2), J1 @ C1 @ J1.T + C2, atol=1e-4)
+
+
+def test_blend_ends_and_per_block_shares(rng):
+    A, B = g.random_pose(rng, 1.0, 40.0), g.random_pose(rng, 1.0, 40.0)
+    np.testing.assert_allclose(g.blend(A, B, 0.0), A, atol=1e-12)
+    np.testing.assert_allclose(g.blend(A, B, 1.0), B, atol=1e-9)
+    xi = g.log_se3(np.linalg.inv(A) @ B)
+    np.testing.assert_allclose(g.blend(A, B, 0.25), A @ g.exp_se3(0.25 * xi), atol=1e-12)
+    np.testing.assert_allclose(g.blend(A, B, (0.0, 1.0)), A @ g.exp_se3(np.r_[np.zeros(3), xi[3:]]), atol=1e-12)
