@@ -11,9 +11,13 @@ The variances come from the run, without ground truth. Between consecutive keyfr
 the same motion exist: the field's (its own tracked poses of i and j, before fusion), the frontend's chain of
 per-frame increments, and the frontend's direct registration of j to i (the graph's odometry factor). The
 registration never sees the field, so its disagreement with the field has the mean square
-``D_fr = s_f + s_r``; the chain and the registration are the same frontend on the same images over the same gap,
-taken as equally precise: ``D_cr = 2 s_r``. Hence ``s_o = s_r = D_cr / 2`` and ``s_f = D_fr - D_cr / 2`` (per
-axis; rotation rad^2 and translation m^2 separately). The field-chain disagreement is not used: the field starts from
+``D_fr = s_f + s_r``; the chain's with the registration ``D_cr = s_o + s_r``. How ``D_cr`` splits is a model
+(``FusionConfig.chain_model``): ``random_walk`` (default) takes the chain of ``n`` frame-to-frame registrations
+(``n`` the mean keyframe gap) to err as ``n`` independent registrations and the direct one as one:
+``s_r = D_cr / (n + 1)``, ``s_o = n D_cr / (n + 1)``; ``equal`` takes the two as equally precise, ``s_o = s_r =
+D_cr / 2`` (for data where the two share most of their error: 7-Scenes, whose colour is not registered to its
+depth). Then ``s_f = D_fr - s_r`` (per axis; rotation rad^2 and translation m^2 separately). ``s_o`` weighs the
+chain in the per-frame fusion, ``s_r`` the graph's registration factors (:meth:`FrameFusion.gap_noise`). The field-chain disagreement is not used: the field starts from
 the odometry's seed, so the two are correlated and their disagreement understates both (measured: the frontend's
 variance came out at the floor on TUM fr1/rpy). :class:`NoiseEstimate` keeps the running sums, started from prior
 values until ``warmup_keyframes`` gaps are measured.
@@ -32,6 +36,7 @@ Poses are 4x4 float64 ``T_w_c``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -68,6 +73,10 @@ class FusionConfig(StrictModel):
     fallback_sigma_m: float = Field(0.1, gt=0)
     max_variance_ratio: float = Field(8.0, gt=1, description="the field gets no share where its variance is "
                                       "more than this many times the odometry's (per block)")
+    chain_model: Literal["equal", "random_walk"] = Field(
+        "random_walk", description="how the chain-registration disagreement D_cr splits between its two sources: "
+        "equal (each D_cr / 2) or random_walk (the chain of n frame-to-frame steps errs as n registrations, the "
+        "keyframe registration as one: D_cr / (n + 1) and n D_cr / (n + 1), n the mean keyframe gap in frames)")
 
 
 def _ms(xi: np.ndarray) -> np.ndarray:
@@ -87,15 +96,21 @@ class NoiseEstimate:
         self.frames = self.gaps = 0    # frames and keyframe gaps seen (the mean gap length)
 
     def variances(self) -> dict[str, np.ndarray]:
-        """``{"field", "odometry"}`` -> variance (2,) over a keyframe gap: the prior's until both pairs have
-        ``warmup_keyframes`` gaps, the data's alone after."""
+        """``{"field", "odometry", "registration"}`` -> variance (2,) over a keyframe gap of the field's motion,
+        the frontend's chain of frame-to-frame steps and its direct keyframe registration: the prior's until both
+        pairs have ``warmup_keyframes`` gaps, the data's alone after (``chain_model`` splits the chain-registration
+        disagreement)."""
         c = self.cfg
         if not self.measured():
+            odometry = np.array([np.radians(c.prior_odometry_sigma_deg) ** 2, c.prior_odometry_sigma_m ** 2])
             return {"field": np.array([np.radians(c.prior_field_sigma_deg) ** 2, c.prior_field_sigma_m ** 2]),
-                    "odometry": np.array([np.radians(c.prior_odometry_sigma_deg) ** 2, c.prior_odometry_sigma_m ** 2])}
+                    "odometry": odometry, "registration": odometry.copy()}
         floor = np.array([np.radians(c.min_sigma_deg) ** 2, c.min_sigma_m ** 2])
         d_fr, d_cr = self.sums / self.counts[:, None]
-        return {"field": np.maximum(d_fr - d_cr / 2, floor), "odometry": np.maximum(d_cr / 2, floor)}
+        share = 1.0 / (self.gap_frames() + 1.0) if c.chain_model == "random_walk" else 0.5
+        registration = d_cr * share
+        return {"field": np.maximum(d_fr - registration, floor), "odometry": np.maximum(d_cr - registration, floor),
+                "registration": np.maximum(registration, floor)}
 
     def measured(self) -> bool:
         """Whether both pairs have ``warmup_keyframes`` gaps (the variances are the data's, not the prior's)."""
@@ -111,7 +126,8 @@ class NoiseEstimate:
         where a source has none (a pair counts only when both of its sources are there)."""
         v = self.variances()
         est = {"field": field, "chain": chain, "registration": registration}
-        expected = {"field-registration": v["field"] + v["odometry"], "chain-registration": 2 * v["odometry"]}
+        expected = {"field-registration": v["field"] + v["registration"],
+                    "chain-registration": v["odometry"] + v["registration"]}
         for row, pair in enumerate(PAIRS):
             a, b = pair.split("-")
             if est[a] is None or est[b] is None:
@@ -230,7 +246,7 @@ class FrameFusion:
     def gap_noise(self) -> GapNoise:
         """The current :class:`~lrslam.backend.calibration.GapNoise` (the factors' calibration)."""
         v = self.noise.variances()
-        return GapNoise(v["odometry"].copy(), v["field"].copy(), self.noise.measured(), self.variances()[2])
+        return GapNoise(v["registration"].copy(), v["field"].copy(), self.noise.measured(), self.variances()[2])
 
     def sigmas(self) -> dict[str, float]:
         """The current estimate: standard deviations per axis over a keyframe gap (``field_deg``, ``field_m``,

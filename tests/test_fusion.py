@@ -29,17 +29,19 @@ def _truth(n: int) -> list[np.ndarray]:
 
 
 def _simulate(n: int, odo: tuple[float, float], field: tuple[float, float], seed: int = 0, broken_every: int = 0,
-              weak_flags: bool = False):
+              weak_flags: bool = False, reg_steps: float = GAP, chain_model: str = "equal"):
     """Run FrameFusion over ``n`` frames: per-frame odometry increments with noise ``odo`` (rad, m per axis: a
     random walk), absolute field poses with noise ``field`` around the truth, a keyframe every GAP frames whose
-    direct registration has the chain's precision. Returns (truth, fused, odometry-only, field-only poses, fusion).
+    direct registration errs as ``reg_steps`` odometry steps (GAP: the chain's precision, the ``equal`` model;
+    1: one step's, the ``random_walk`` model); ``chain_model`` the fusion's. Returns (truth, fused, odometry-only,
+    field-only poses, fusion).
 
     ``broken_every``: every so many frames the odometry's step is 8 cm off instead, and the keyframe registrations
     share the chain's errors (same images, same failure: the noise estimate cannot see it); ``weak_flags``: those
     frames are marked weak, as their registration's fitness would say."""
     rng = np.random.default_rng(seed)
     gt = _truth(n)
-    fusion = FrameFusion(FusionConfig(per_frame=True))
+    fusion = FrameFusion(FusionConfig(per_frame=True, chain_model=chain_model))
     fusion.start(gt[0], gt[0])
     fused, frontend, field_only = [gt[0]], [gt[0]], [gt[0]]
     kf_gt, kf_frontend = gt[0], gt[0]
@@ -54,7 +56,7 @@ def _simulate(n: int, odo: tuple[float, float], field: tuple[float, float], seed
         fused.append(fusion.fuse(fused[-1] @ inc, True, T_field, frontend[-1], not (broken and weak_flags)).T_w_c)
         if k % GAP == 0:
             truth = inv(kf_frontend) @ frontend[-1] if broken_every else inv(kf_gt) @ gt[k]
-            fusion.on_keyframe(truth @ _noise(rng, odo[0] * np.sqrt(GAP), odo[1] * np.sqrt(GAP)))
+            fusion.on_keyframe(truth @ _noise(rng, odo[0] * np.sqrt(reg_steps), odo[1] * np.sqrt(reg_steps)))
             kf_gt, kf_frontend = gt[k], frontend[-1]
     return gt, fused, frontend, field_only, fusion
 
@@ -107,6 +109,34 @@ def test_noise_estimate_recovers_known_noise(odo_m, field_m):
     assert v["field"][1] / (2 * field_m ** 2) == pytest.approx(1.0, abs=0.25)
 
 
+@pytest.mark.parametrize("model, reg_steps", [("equal", GAP), ("random_walk", 1)])
+def test_noise_estimate_splits_the_frontends_disagreement_by_its_model(model, reg_steps):
+    """Each source's variance recovered when the chain model matches the data: ``equal`` where the keyframe
+    registration errs as much as the chain of GAP steps, ``random_walk`` where it errs as one step (the chain as
+    GAP of them): registration, chain (odometry) and field within 25 %."""
+    odo_m, field_m = 0.0005, 0.003
+    _, _, _, _, fusion = _simulate(1500, (np.radians(0.05), odo_m), (np.radians(0.1), field_m), seed=2,
+                                   reg_steps=reg_steps, chain_model=model)
+    v = fusion.noise.variances()
+    assert v["registration"][1] / (reg_steps * odo_m ** 2) == pytest.approx(1.0, abs=0.25)
+    assert v["odometry"][1] / (GAP * odo_m ** 2) == pytest.approx(1.0, abs=0.25)
+    assert v["field"][1] / (2 * field_m ** 2) == pytest.approx(1.0, abs=0.25)
+    assert fusion.gap_noise().odometry[1] == v["registration"][1]   # the graph's registrations get this one
+
+
+def test_equal_split_overstates_a_precise_registration():
+    """A keyframe registration as precise as one odometry step, read with the ``equal`` model: its variance comes
+    out (GAP + 1) / 2 = 3 times too large and the chain's 0.6 times too small (the synthetic frontend's case:
+    direct registrations 9x more precise in sigma than the chain); the ``random_walk`` model gets both."""
+    odo_m = 0.0005
+    for model, reg, chain in (("equal", (GAP + 1) / 2, (GAP + 1) / (2 * GAP)), ("random_walk", 1.0, 1.0)):
+        _, _, _, _, fusion = _simulate(1500, (np.radians(0.05), odo_m), (np.radians(0.1), 0.003), seed=3,
+                                       reg_steps=1, chain_model=model)
+        v = fusion.noise.variances()
+        assert v["registration"][1] / odo_m ** 2 == pytest.approx(reg, rel=0.25), model
+        assert v["odometry"][1] / (GAP * odo_m ** 2) == pytest.approx(chain, rel=0.25), model
+
+
 def test_noise_estimate_caps_an_outlier():
     """One broken registration (50 cm off) among gaps that agree to 1 mm counts as at most outlier_factor^2 times
     the expected disagreement."""
@@ -134,7 +164,7 @@ def test_failed_odometry_takes_the_field():
 def test_fusion_state_round_trip():
     """Checkpoint and restore continue bit for bit."""
     _, _, _, _, a = _simulate(40, (np.radians(0.1), 0.002), (np.radians(0.2), 0.004))
-    b = FrameFusion(FusionConfig(per_frame=True))
+    b = FrameFusion(a.cfg)
     b.load_state_dict(a.state_dict())
     T = exp_se3(np.array([0.01, 0, 0, 0.02, 0, 0]))
     assert np.array_equal(a.fuse(np.eye(4), True, T, T).T_w_c, b.fuse(np.eye(4), True, T, T).T_w_c)

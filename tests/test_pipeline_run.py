@@ -123,3 +123,21 @@ def test_online_trajectory_is_the_run_without_the_final_refinement(tiny_sequence
     assert not np.allclose(refined, tracked, atol=1e-6)   # the refinement did move keyframes
     assert m_on["online_ate_rmse_cm"] == pytest.approx(m_off["ate_rmse_cm"], abs=1e-4)
     assert not (tmp_path / "off" / "trajectory_online.txt").exists() and "online_ate_rmse_cm" not in m_off
+
+
+def test_the_frontend_with_its_own_graph_closes_loops(tmp_path):
+    """``--mode frontend`` with ``parts.backend=graph`` and the factors of the frontend alone (its keyframe
+    registrations and loops; no field is built): the classical pipeline ``benchmarks/modes.py`` compares fused
+    with. On a synthetic loop it keeps loops, solves the graph and ends below the frontend alone."""
+    from lrslam.pipeline.run import run_sequence
+
+    seq = synthetic_room(tmp_path / "room", n_frames=60, seed=0)
+    base = ["deterministic=true", "output.mesh=false", "output.plots=false"]
+    run_sequence(seq, build_config("synthetic", overrides=base, mode="frontend"), tmp_path / "fe", progress=False)
+    run_sequence(seq, build_config("synthetic", overrides=base + ["parts.backend=graph",
+                                                                  'backend.factors=["odometry", "loop"]'],
+                                   mode="frontend"), tmp_path / "fg", progress=False)
+    m_alone = json.loads((tmp_path / "fe" / "metrics.json").read_text())
+    m = json.loads((tmp_path / "fg" / "metrics.json").read_text())
+    assert m["loops"]["kept"] > 0 and m["n_graph_solves"] > 0 and m_alone["n_loop_closures"] == 0
+    assert m["ate_rmse_cm"] < m_alone["ate_rmse_cm"], (m["ate_rmse_cm"], m_alone["ate_rmse_cm"])
