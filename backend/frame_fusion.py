@@ -7,18 +7,18 @@ translation): ``T = T_seed exp(k * log(T_seed^-1 T_field))`` with ``k = s_o / (s
 ``s_f`` are the odometry's and the field's error variances over the same motion. ``k`` near 0: the odometry is
 the more precise and the field only bounds its drift; near 1: the field's word.
 
-The variances come from the run, without ground truth. Between consecutive keyframes i and j three estimates of
-the same motion exist: the field's (its own tracked poses of i and j, before fusion), the frontend's chain of
-per-frame increments, and the frontend's direct registration of j to i (the graph's odometry factor). The
-registration never sees the field, so its disagreement with the field has the mean square
-``D_fr = s_f + s_r``; the chain's with the registration ``D_cr = s_o + s_r``. How ``D_cr`` splits is a model
-(``FusionConfig.chain_model``): ``random_walk`` (default) takes the chain of ``n`` frame-to-frame registrations
-(``n`` the mean keyframe gap) to err as ``n`` independent registrations and the direct one as one:
-``s_r = D_cr / (n + 1)``, ``s_o = n D_cr / (n + 1)``; ``equal`` takes the two as equally precise, ``s_o = s_r =
-D_cr / 2`` (for data where the two share most of their error: 7-Scenes, whose colour is not registered to its
-depth). Then ``s_f = D_fr - s_r`` (per axis; rotation rad^2 and translation m^2 separately). ``s_o`` weighs the
-chain in the per-frame fusion, ``s_r`` the graph's registration factors (:meth:`FrameFusion.gap_noise`). The field-chain disagreement is not used: the field starts from
-the odometry's seed, so the two are correlated and their disagreement understates both (measured: the frontend's
+The variances come from the run, without ground truth. Between consecutive keyframes i and j three estimates of the
+same motion exist: the field's (its own tracked poses of i and j, before fusion), the frontend's chain of per-frame
+increments, and the frontend's direct registration of j to i (the graph's odometry factor). The registration never
+sees the field, so its disagreement with the field has the mean square ``D_fr = s_f + s_r``; the chain's with the
+registration ``D_cr = s_o + s_r``. How ``D_cr`` splits is a model (``FusionConfig.chain_model``): ``random_walk``
+(default) takes the chain of ``n`` frame-to-frame registrations (``n`` the mean keyframe gap) to err as ``n``
+independent registrations and the direct one as one: ``s_r = D_cr / (n + 1)``, ``s_o = n D_cr / (n + 1)``; ``equal``
+takes the two as equally precise, ``s_o = s_r = D_cr / 2`` (for data where the two share most of their error:
+7-Scenes, whose colour is not registered to its depth). Then ``s_f = D_fr - s_r`` (per axis; rotation rad^2 and
+translation m^2 separately). ``s_o`` weighs the chain in the per-frame fusion, ``s_r`` the graph's registration
+factors (:meth:`FrameFusion.gap_noise`). The field-chain disagreement is not used: the field starts from the
+odometry's seed, so the two are correlated and their disagreement understates both (measured: the frontend's
 variance came out at the floor on TUM fr1/rpy). :class:`NoiseEstimate` keeps the running sums, started from prior
 values until ``warmup_keyframes`` gaps are measured.
 

@@ -111,7 +111,7 @@ def _gap_table(gaps: _Gaps, gt: dict[int, np.ndarray], estimate: dict[str, np.nd
         if e["chain"] is not None and e["registration"] is not None:
             paired.append((e["chain"][3:], e["registration"][3:]))
     sigma = lambda x: (np.degrees(np.sqrt(np.mean(x[:, :3] ** 2))), 100 * np.sqrt(np.mean(x[:, 3:] ** 2)))  # noqa: E731
-    est = {"field": estimate["field"], "chain": estimate["odometry"], "registration": estimate.get("registration", estimate["odometry"])}
+    est = {"field": estimate["field"], "chain": estimate["odometry"], "registration": estimate["registration"]}
     lines = [f"{'gap source':16s} {'n':>5s} {'deg':>8s} {'cm':>8s}   {'run estimate deg':>16s} {'cm':>8s}"]
     for k, rows in errors.items():
         if not rows:

@@ -18,10 +18,11 @@ loop-closing pipeline a user could run instead of the hybrid. It is not one of f
 promise; its comparison with fused is printed on its own line (PASS / FAIL, never hidden).
 
 Per sequence: ``field`` and ``fused`` run once per seed (``--seeds``, default 3: the field's ray sampling is
-random), ``frontend`` and ``frontend+graph`` once (Open3D odometry is deterministic: its spread is 0 by construction). The table
-gives ATE RMSE mean, spread (min-max) and every seed, s/frame with the first-third and last-third means
-(does the rate collapse as loops accumulate?), keyframes, loops, graph solves and re-maps. The check line per
-sequence is ``fused <= min(field, frontend)`` on the means; it prints FAIL when it fails (never hidden).
+random), ``frontend`` and ``frontend+graph`` once (Open3D odometry is deterministic: its spread is 0 by
+construction). The table gives ATE RMSE mean, spread (min-max) and every seed, s/frame with the first-third and
+last-third means (does the rate collapse as loops accumulate?), keyframes, loops, graph solves and re-maps. The
+check line per sequence is ``fused <= min(field, frontend)`` on the means; it prints FAIL when it fails (never
+hidden).
 
 ``--ablation N`` adds fused rows with one factor set each (``backend.factors``) over N seeds, to show which
 factors earn their place.

@@ -28,8 +28,9 @@ def test_gap_table_gives_each_sources_sigma_against_ground_truth():
     for i, j in ((0, 2), (2, 3), (3, 9)):
         true = np.linalg.inv(gt[i]) @ gt[j] if j in gt else np.eye(4)
         rows.append((i, j, {"field": true @ field_err, "chain": true @ chain_err, "registration": true.copy()}))
-    estimate = {"field": np.array([np.radians(0.5) ** 2, 0.02 ** 2]), "odometry": np.array([np.radians(0.1) ** 2,
-                                                                                             0.004 ** 2])}
+    odometry = np.array([np.radians(0.1) ** 2, 0.004 ** 2])
+    estimate = {"field": np.array([np.radians(0.5) ** 2, 0.02 ** 2]), "odometry": odometry,
+                "registration": odometry.copy()}
     lines = _gap_table(_Gaps(rows), gt, estimate)
     table = {ln.split()[0]: ln.split() for ln in lines[1:4]}
     assert table["field"][1] == "2"                                   # the gap to frame 9 has no ground truth
