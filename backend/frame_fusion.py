@@ -178,10 +178,14 @@ class FrameFusion:
     def variances(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(q, r, gated)``, each (2,) rotation / translation: the odometry's variance per frame
         (``s_o / mean gap``), the field's per frame (``s_f / 2``: a gap's field motion is the difference of two
-        field poses), and whether the field is gated out (``s_f > max_variance_ratio * s_o``)."""
+        field poses), and whether the field is gated out (:meth:`_gated`)."""
         v = self.noise.variances()
-        gated = v["field"] > self.cfg.max_variance_ratio * v["odometry"]
-        return v["odometry"] / self.noise.gap_frames(), v["field"] / 2, gated
+        return v["odometry"] / self.noise.gap_frames(), v["field"] / 2, self._gated(v)
+
+    def _gated(self, v: dict[str, np.ndarray]) -> np.ndarray:
+        """(2,) bool per block: the field's variance is above ``max_variance_ratio`` times the odometry's
+        (``v``: :meth:`NoiseEstimate.variances`)."""
+        return v["field"] > self.cfg.max_variance_ratio * v["odometry"]
 
     def start(self, T_w_c0: np.ndarray, T_frontend0: np.ndarray | None) -> None:
         """The first frame (a keyframe, fixed: ``P = 0``)."""
@@ -246,7 +250,7 @@ class FrameFusion:
     def gap_noise(self) -> GapNoise:
         """The current :class:`~lrslam.backend.calibration.GapNoise` (the factors' calibration)."""
         v = self.noise.variances()
-        return GapNoise(v["registration"].copy(), v["field"].copy(), self.noise.measured(), self.variances()[2])
+        return GapNoise(v["registration"].copy(), v["field"].copy(), self.noise.measured(), self._gated(v))
 
     def sigmas(self) -> dict[str, float]:
         """The current estimate: standard deviations per axis over a keyframe gap (``field_deg``, ``field_m``,
