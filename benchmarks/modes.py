@@ -23,10 +23,10 @@ of fused's parts, so neither is in the promise; the comparison of each with fuse
 Per sequence every variant runs once per seed (``--seeds``, default 3): the field's ray sampling is random, and
 Open3D's multi-threaded registration does not repeat bit for bit, so the frontend alone drifts differently from
 run to run as well (fr1/xyz: 3.91 and 4.12 cm in two threaded runs, 4.55 on one thread; only ``--set
-deterministic=true`` runs repeat exactly). The table gives ATE RMSE mean, spread (min-max) and every seed, s/frame with the first-third and
-last-third means (does the rate collapse as loops accumulate?), keyframes, loops, graph solves and re-maps. The
-check line per sequence is ``fused <= min(field, frontend)`` on the means; it prints FAIL when it fails (never
-hidden).
+deterministic=true`` runs repeat exactly). The table gives ATE RMSE mean, spread (min-max) and every seed,
+s/frame with the first-third and last-third means (does the rate collapse as loops accumulate?), keyframes,
+loops, graph solves and re-maps. The check line per sequence is ``fused <= min(field, frontend)`` on the means;
+it prints FAIL when it fails (never hidden).
 
 ``--ablation N`` adds fused rows with one factor set each (``backend.factors``) over N seeds, to show which
 factors earn their place.
