@@ -33,12 +33,15 @@ class GapNoise:
     """Per-axis error variances over one keyframe gap, ``(2,)`` each: rotation (rad^2), translation (m^2), of the
     frontend's keyframe-to-keyframe motion (``odometry``) and of the field's (``field``); ``measured``: False while
     they are still the configured prior; ``field_gated`` (2,) bool: per block, whether the field is judged too
-    imprecise to take part (its variance far above the odometry's, :class:`lrslam.backend.frame_fusion.FusionConfig`)."""
+    imprecise to take part (its variance far above the odometry's, :class:`lrslam.backend.frame_fusion.FusionConfig`);
+    ``chain`` (2,): the variance of the frontend's chain of per-frame poses over a gap (the odometry factor's when
+    that is the chain, ``BackendConfig.odometry_factor``), None where not measured."""
 
     odometry: np.ndarray
     field: np.ndarray
     measured: bool
     field_gated: np.ndarray = dc_field(default_factory=lambda: np.zeros(2, dtype=bool))
+    chain: np.ndarray | None = None
 
     def field_pose_information(self) -> np.ndarray:
         """(6, 6) information of the field's own pose of a keyframe against the map (an absolute measurement:

@@ -250,7 +250,8 @@ class FrameFusion:
     def gap_noise(self) -> GapNoise:
         """The current :class:`~lrslam.backend.calibration.GapNoise` (the factors' calibration)."""
         v = self.noise.variances()
-        return GapNoise(v["registration"].copy(), v["field"].copy(), self.noise.measured(), self._gated(v))
+        return GapNoise(v["registration"].copy(), v["field"].copy(), self.noise.measured(), self._gated(v),
+                        v["odometry"].copy())
 
     def sigmas(self) -> dict[str, float]:
         """The current estimate: standard deviations per axis over a keyframe gap (``field_deg``, ``field_m``,

@@ -4,11 +4,22 @@ Between keyframes i and j the frontend measures the motion twice over: as the ch
 odometry increments (:attr:`OdometryResult.T_prev_c`, each with its information) and, at j, by registering
 j directly to i starting from that chain. Both come from the frontend alone -- the field never seeds them -- so
 the factor is independent of the field's estimate of the same motion. They are not independent of each other
-(same images), so one is used: the direct registration when it passes its gates, else the chain, whose
-covariance is propagated increment by increment (:func:`lrslam.geometry.propagate_covariance`).
+(same images), so one is the factor (``factor``): by default the direct registration when it passes its gates,
+else the chain, whose covariance is propagated increment by increment
+(:func:`lrslam.geometry.propagate_covariance`); with ``factor="chain"`` always the chain (with the registration's
+information shape when it passed its gates: the calibration rescales it to the chain's measured noise). The chain
+can be the better factor where the frontend refines each frame against a model (``odometry.model``) and the
+direct registration carries a bias of the data: 7-Scenes, whose colour is not registered to its depth (fused with
+the model, excerpt every 4th frame, 3 deterministic seeds: 2.96 cm; seed 0: 2.94 against 3.83 with the
+registration as the factor; but threaded 3.70, 3.70, 2.73, 3.92 against 3.46 for the default frame-to-frame
+fused, so no preset uses it; docs/BENCHMARKS.md section 21). The direct registration is always measured: the
+fusion's noise estimate compares the chain with it (:attr:`KeyframeLinkMeasurement.T_registration`).
 
-A measurement is *trusted* when the registration's fitness reaches ``gates.trusted_fitness`` (for the chain: when
-every increment was trusted, :attr:`OdometryResult.trusted`). An untrusted one is still reported: the graph gets
+A measurement is *trusted* when the registration's fitness reaches ``gates.trusted_fitness`` (for the chain standing
+in for a failed registration: when every increment was trusted, :attr:`OdometryResult.trusted`; the chain as the
+factor by choice: when both are, the registration saying the two keyframes overlap well; 7-Scenes every 12th
+frame, where the frontend loses track, deterministic seed 0: 6.53 cm against 8.62 with the registration's trust
+alone). An untrusted one is still reported: the graph gets
 no factor from it (:class:`lrslam.backend.policy.GraphBackend`), the fusion's noise estimate still counts its error.
 At large motion a registration that passes its gates can be wrong by decimetres, and its fitness says so.
 """
@@ -17,6 +28,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -36,7 +48,8 @@ _EPS = 1e-9
 class KeyframeLinkMeasurement:
     """``T_i_j`` (4, 4): keyframe j's camera in keyframe i's; ``information`` (6, 6), right perturbation,
     ``[rotation, translation]``; ``source``: ``"registration"`` or ``"chain"``; ``frames``: odometry increments
-    chained; ``trusted``: see the module docstring."""
+    chained; ``trusted``: see the module docstring; ``T_registration`` (4, 4): the direct registration of j to i
+    when it passed its gates (whichever is the factor), else None."""
 
     i: int
     j: int
@@ -45,6 +58,7 @@ class KeyframeLinkMeasurement:
     source: str
     frames: int
     trusted: bool = True
+    T_registration: np.ndarray | None = None
 
 
 def _covariance(information: np.ndarray) -> np.ndarray:
@@ -58,10 +72,13 @@ class KeyframeLink:
     Args:
         registration: how the keyframe-to-keyframe registration runs.
         gates: whether it is accepted (else the chain is used).
+        factor: ``"registration"`` (the direct registration, the chain where it fails its gates) or ``"chain"``
+            (the chain always; module docstring).
     """
 
-    def __init__(self, registration: RegistrationConfig, gates: RegistrationGates):
-        self.registration, self.gates = registration, gates
+    def __init__(self, registration: RegistrationConfig, gates: RegistrationGates,
+                 factor: Literal["registration", "chain"] = "registration"):
+        self.registration, self.gates, self.factor = registration, gates, factor
         self._kf_id: int | None = None
         self._kf_view: RGBDView | None = None
         self._T = np.eye(4)
@@ -103,9 +120,13 @@ class KeyframeLink:
             return None
         view = RGBDView(*_images(frame))
         reg = register_rgbd(view, self._kf_view, self._T, self.registration, self.gates)
-        if reg.ok:
+        T_reg = reg.T_tgt_src if reg.ok else None
+        if reg.ok and self.factor == "chain":
+            out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), self._T.copy(), reg.information, "chain",
+                                          self._frames, reg.trusted and self._trusted, T_reg)
+        elif reg.ok:
             out = KeyframeLinkMeasurement(self._kf_id, int(kf_id), reg.T_tgt_src, reg.information, "registration",
-                                          self._frames, reg.trusted)
+                                          self._frames, reg.trusted, T_reg)
         else:
             log.info("keyframe %d -> %d registration rejected (%s): using the odometry chain of %d frames",
                      self._kf_id, kf_id, reg.reason, self._frames)

@@ -76,6 +76,11 @@ class BackendConfig(StrictModel):
                             "the loops could not move it; 3 seeds with the map's loop check off: fr1/xyz 1.30 -> "
                             "1.10 cm, TUM excerpt 2.30 -> 2.26; docs/BENCHMARKS.md section 15). With the map's check "
                             "on it cost TUM fr1/rpy 2.29 -> 2.54 and 7-Scenes 3.79 -> 4.60 (12-05)")
+    odometry_factor: Literal["registration", "chain"] = Field(
+        "registration", description="the frontend's keyframe-to-keyframe factor: its direct registration of the "
+        "new keyframe to the previous one, or the chain of its per-frame poses (calibrated to the chain's measured "
+        "noise; with odometry.model on, 7-Scenes every 4th frame: deterministic 3 seeds 2.96 cm, threaded 4 runs 3.51; "
+        "lrslam.backend.keyframe_link, docs/BENCHMARKS.md section 21)")
     calibrate_registrations: bool = Field(True, description="with calibrate: the "
                                           "registrations' (odometry and loop factors) informations are calibrated "
                                           "too, in the online solves and the final refinement. False: they "
@@ -240,7 +245,7 @@ class GraphBackend:
             log.info("keyframe %d: %d loop(s) consistent with the trajectory (no solve for them)", frame.index,
                      len(loops) - len(real))
         edges = tuple((lc.i, lc.j) for lc in loops)
-        T_link = link.T_i_j if link is not None and link.source == "registration" else None
+        T_link = link.T_registration if link is not None else None
         if not (real or self.cfg.optimise == "every_keyframe"):
             return Correction(edges=edges, link=T_link)
         return replace(self._solve(poses, edges), link=T_link)
@@ -347,8 +352,11 @@ class GraphBackend:
 
     def _calibration(self, online: bool = True) -> GapNoise | None:
         """The run's measured noise to weigh the factors by: None before it is measured, and for the online solves
-        when ``calibrate`` is off (the final refinement always weighs by it: it has no other weights)."""
+        when ``calibrate`` is off (the final refinement always weighs by it: it has no other weights). With
+        ``odometry_factor="chain"`` the odometry factors are weighed by the chain's variance."""
         noise = self._noise
+        if self.cfg.odometry_factor == "chain" and noise is not None and noise.chain is not None:
+            noise = replace(noise, odometry=noise.chain)   # the odometry factors are the chain
         return noise if (self.cfg.calibrate or not online) and noise is not None and noise.measured else None
 
     def _consistent_solution(self, graph: PoseGraph, poses: dict[int, np.ndarray]) -> dict[int, np.ndarray]:

@@ -12,10 +12,9 @@ Every tracked frame is integrated at its final pose.
 
 Measured, frontend alone (ATE RMSE cm, 2026-12-06; without -> with): TUM fr1/xyz full 4.00 -> 1.59, TUM fr1/rpy
 excerpt 5.74 -> 4.99, 7-Scenes redkitchen every 4th frame 3.91 -> 3.35, synthetic loop 2.08 -> 0.54, fast synthetic
-orbit 0.79 -> 0.79 (no frame slow enough); +0.1-0.2 s/frame on 2 cores at 320x240. Off by default
-(``enabled``): in fused mode it made the result worse (TUM excerpt 2.29 -> 2.43 cm over 3 seeds, 7-Scenes
-3.79 -> 4.65 / 5.61 on two seeds, below the frontend alone): the fusion's noise estimate and the graph's odometry
-factors come from the direct keyframe registrations and the frame-to-frame chain, not from this model.
+orbit 0.79 -> 0.79 (no frame slow enough); +0.1-0.2 s/frame on 2 cores at 320x240. Off in the code's defaults
+(``enabled``); on in the CPU presets' frontend mode. Not in fused mode: there it made TUM fr1/xyz worse (1.003 ->
+1.125 cm, deterministic seed 0) and tied on 7-Scenes at +0.37 s/frame (docs/BENCHMARKS.md section 21).
 
 Pixel convention: Open3D's integration reads the depth pixel ``int(u)`` (not the nearest) for a voxel projecting
 to ``u``, half a pixel off the pinhole model the rest of the project uses. Its tracking associates the same way, so

@@ -340,6 +340,6 @@ def _backend(cfg: RunConfig, field: FieldSLAM | None) -> GraphBackend:
 
     g = cfg.graph
     return GraphBackend(cfg.backend, PoseGraph(g), LoopCloser(cfg.loop_closure),
-                        KeyframeLink(cfg.odometry.registration, cfg.odometry.gates),
+                        KeyframeLink(cfg.odometry.registration, cfg.odometry.gates, cfg.backend.odometry_factor),
                         diagonal_information(np.radians(g.field_sigma_rotation), g.field_sigma_translation),
                         field.pose_losses if field is not None else None)

@@ -242,7 +242,7 @@ def test_cli_run_on_a_bag_matches_the_tum_copy(source, tmp_path, capfd, kind):
     assert code == 0, err
     t_bag, P_bag = read_tum(tmp_path / "bag" / "trajectory.txt")
     t_tum, P_tum = read_tum(tmp_path / "tum" / "trajectory.txt")
-    assert len(P_bag) == 16 and np.ptp(P_bag[:, :3, 3], axis=0).max() > 0.05   # the camera moved
+    assert len(P_bag) == 16 and np.ptp(P_bag[:, :3, 3], axis=0).max() > 0.03   # the camera moved (truth: 4.4 cm)
     np.testing.assert_allclose(t_bag, t_tum, rtol=0, atol=1e-6)
     np.testing.assert_allclose(P_bag, P_tum, rtol=0, atol=1e-6)
     assert "no ground truth" in out

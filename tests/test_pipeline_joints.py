@@ -31,7 +31,7 @@ class _Link:
         pass
 
     def measure(self, kf, frame):
-        out = KeyframeLinkMeasurement(self.last, kf, self.T, INFO, "registration", 1, self.trusted)
+        out = KeyframeLinkMeasurement(self.last, kf, self.T, INFO, "registration", 1, self.trusted, self.T)
         self.last = kf
         return out
 
@@ -260,6 +260,58 @@ def test_keyframe_link_trust_follows_the_fitness_and_the_chain():
         assert m.source == "chain" and m.trusted is all(flags)
     link.accumulate(OdometryResult(3, np.eye(4), step, 2, INFO, True, 0.9, 0.0, "", step))
     assert link.measure(3, blank).trusted          # the chain's trust restarts at the keyframe
+
+
+def test_keyframe_link_as_the_chain_still_hands_on_the_registration():
+    """``factor="chain"``: the odometry factor is the chain of per-frame increments (exactly their product), with
+    the registration's information and trust, while the direct registration is still measured and handed on (the
+    fusion's noise estimate compares the chain with it); the default factor is the registration."""
+    from frontend_fixtures import T_W_C_REF, make_frame, make_room
+    from lrslam.backend.keyframe_link import KeyframeLink
+    from lrslam.frontend.odometry import OdometryConfig, OdometryResult
+
+    room = make_room()
+    step = exp_se3(np.array([0.0, 0.01, 0.0, 0.02, 0.0, 0.01]))
+    chained = step @ exp_se3(np.array([0.001, 0.0, 0.0, 0.01, 0.0, 0.0]))   # 1 cm off the true motion
+    f0, f1 = make_frame(room, T_W_C_REF, index=0), make_frame(room, T_W_C_REF @ step, index=1)
+    cfg = OdometryConfig()
+    out = {}
+    for factor in ("registration", "chain"):
+        link = KeyframeLink(cfg.registration, cfg.gates, factor)
+        link.start(0, f0)
+        link.accumulate(OdometryResult(1, np.eye(4), chained, 0, INFO, True, 0.9, 0.0, "", chained))
+        out[factor] = link.measure(1, f1)
+    reg, chain = out["registration"], out["chain"]
+    assert reg.source == "registration" and chain.source == "chain"
+    np.testing.assert_array_equal(chain.T_i_j, chained)
+    np.testing.assert_allclose(chain.T_registration, reg.T_i_j, atol=1e-5)   # threaded Open3D: not bit for bit
+    np.testing.assert_array_equal(reg.T_registration, reg.T_i_j)
+    np.testing.assert_allclose(chain.information, reg.information, rtol=1e-3)
+    assert chain.trusted == reg.trusted
+    assert np.abs(chain.T_i_j - reg.T_i_j).max() > 1e-3      # the registration moved off the chain's seed
+    # the chain as the factor is trusted only when every chained increment was (and the registration is)
+    link = KeyframeLink(cfg.registration, cfg.gates, "chain")
+    link.start(0, f0)
+    link.accumulate(OdometryResult(1, np.eye(4), chained, 0, INFO, True, 0.9, 0.0, "", chained, "", False))
+    weak = link.measure(1, f1)
+    assert weak.source == "chain" and reg.trusted and not weak.trusted
+
+
+def test_chain_odometry_factors_are_weighed_by_the_chains_noise():
+    """``odometry_factor="chain"``: the odometry factors are calibrated to the chain's measured variance
+    (``GapNoise.chain``), not the direct registration's (``GapNoise.odometry``); closed form: the factor's
+    covariance diagonal equals the chain's variance per block."""
+    from lrslam.backend.calibration import GapNoise
+
+    T = make_pose(np.eye(3), [0.12, 0.0, 0.0])
+    noise = GapNoise(np.array([1e-6, 1e-6]), np.array([4e-6, 4e-4]), True, chain=np.array([9e-6, 2.5e-5]))
+    for factor, expected in (("registration", noise.odometry), ("chain", noise.chain)):
+        backend = GraphBackend(BackendConfig(odometry_factor=factor), PoseGraph(GraphConfig()), _Loops(),
+                               _Link(T, True), INFO)
+        backend.start(_frame(0), np.eye(4))
+        backend.on_keyframe(_frame(1), {0: np.eye(4), 1: T}, INFO, noise)
+        (odo,) = [f for f in backend.calibrated_measurements() if f.kind == "odometry"]
+        np.testing.assert_allclose(np.diag(np.linalg.inv(odo.information)), np.repeat(expected, 3), rtol=1e-6)
 
 
 def test_a_loop_correction_the_map_disputes_is_dropped():

@@ -258,8 +258,10 @@ def _cli(argv, capfd) -> tuple[int, str]:
     return int(e.value.code or 0), capfd.readouterr().err
 
 
+# frame to frame: a resume with the frame-to-model refinement (frontend mode's default on the CPU presets) is not
+# bit for bit (Open3D's voxel grid after its own save / load; tests/test_frontend_model_tracking.py)
 FRONTEND = ["--config", "synthetic", "--mode", "frontend", "--seed", "2", "--deterministic", "--checkpoint-every",
-            "1", "-q", *[x for o in TINY for x in ("--set", o)]]
+            "1", "-q", *[x for o in TINY + ["odometry.model.enabled=false"] for x in ("--set", o)]]
 
 
 @pytest.fixture
