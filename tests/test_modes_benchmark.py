@@ -47,12 +47,15 @@ def test_report_states_the_classical_comparison_apart_from_the_promise():
                                        "fused": [0.3, 0.36]}))
     assert ok
     assert "PASS  fused <= min(field, frontend): fused 0.33" in text
+    # the verdict is on the means; the line gives the margin and the seeds' noise: std([0.3, 0.36]) / sqrt(2)
+    assert "fused - min = -0.12 cm, the standard error of fused's mean 0.03 over 2 seeds" in text
     assert "FAIL  fused <= frontend+graph" in text and "frontend+graph 0.25 cm" in text
     text, ok = report("seq", _results({"field": [0.4], "frontend": [0.3], "frontend+graph": [0.5], "fused": [0.35]}))
     assert not ok
     assert "FAIL  fused <= min(field, frontend)" in text and "PASS  fused <= frontend+graph" in text
     text, ok = report("seq", _results({"field": [0.4], "frontend": [2.0], "fused": [0.3]}))
     assert ok and "frontend+graph" not in text and "frontend-f2f" not in text
+    assert "standard error" not in text                       # one seed: no noise to state
 
 
 def test_report_states_the_frame_to_frame_frontend_comparison_apart_from_the_promise():
