@@ -80,11 +80,11 @@ def calibrated(factors: Sequence, noise: GapNoise, registrations: bool = True) -
     """``factors`` (frozen dataclasses with ``kind`` and ``information``, e.g.
     :class:`lrslam.backend.policy.FactorRecord`) with their informations calibrated by ``noise`` (module
     docstring); other kinds (a prior) unchanged. ``registrations=False``: ``odometry`` and ``loop`` factors keep
-    their stated informations, only the field's are calibrated (data whose colour is not registered to its depth:
-    the odometry variance is measured from the disagreement of two RGB-D registrations, the frame-to-frame chain
-    and the keyframe registration, which share the colour's error and so agree; on the 7-Scenes excerpt the
-    calibrated odometry factors came out 40x too precise against ground truth, chi2 / dof 38-49, the stated ones
-    near 1, docs/BENCHMARKS.md section 15)."""
+    their stated informations, only the field's are calibrated (data whose colour is registered to its depth only
+    approximately: the odometry variance is measured from the disagreement of two RGB-D registrations, the
+    frame-to-frame chain and the keyframe registration, which share the colour's error and so agree; on the
+    7-Scenes excerpt the calibrated odometry factors came out 40x too precise against ground truth, chi2 / dof
+    38-49, the stated ones near 1, docs/BENCHMARKS.md section 15)."""
     alpha = registration_scale([f.information for f in factors if f.kind == "odometry"], noise.odometry)
     field_info = np.diag(1.0 / np.repeat(np.maximum(noise.field, _EPS), 3))
     out = []

@@ -15,12 +15,13 @@ registration ``D_cr = s_o + s_r``. How ``D_cr`` splits is a model (``FusionConfi
 (default) takes the chain of ``n`` frame-to-frame registrations (``n`` the mean keyframe gap) to err as ``n``
 independent registrations and the direct one as one: ``s_r = D_cr / (n + 1)``, ``s_o = n D_cr / (n + 1)``; ``equal``
 takes the two as equally precise, ``s_o = s_r = D_cr / 2`` (for data where the two share most of their error:
-7-Scenes, whose colour is not registered to its depth). Then ``s_f = D_fr - s_r`` (per axis; rotation rad^2 and
-translation m^2 separately). ``s_o`` weighs the chain in the per-frame fusion, ``s_r`` the graph's registration
-factors (:meth:`FrameFusion.gap_noise`). The field-chain disagreement is not used: the field starts from the
-odometry's seed, so the two are correlated and their disagreement understates both (measured: the frontend's
-variance came out at the floor on TUM fr1/rpy). :class:`NoiseEstimate` keeps the running sums, started from prior
-values until ``warmup_keyframes`` gaps are measured.
+7-Scenes, whose colour was recorded unregistered to its depth and is registered only approximately). Then
+``s_f = D_fr - s_r`` (per axis; rotation rad^2 and translation m^2 separately). ``s_o`` weighs the chain in the
+per-frame fusion, ``s_r`` the graph's registration factors (:meth:`FrameFusion.gap_noise`). The field-chain
+disagreement is not used: the field starts from the odometry's seed, so the two are correlated and their
+disagreement understates both (measured: the frontend's variance came out at the floor on TUM fr1/rpy).
+:class:`NoiseEstimate` keeps the running sums, started from prior values until ``warmup_keyframes`` gaps are
+measured.
 
 A frame whose odometry failed, was overruled by the field's seed arbitration, or registered weakly (fitness below
 ``gates.trusted_fitness``: at large motion a registration that passes its gates can be decimetres off, and the

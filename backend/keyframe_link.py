@@ -8,11 +8,11 @@ the factor is independent of the field's estimate of the same motion. They are n
 else the chain, whose covariance is propagated increment by increment
 (:func:`lrslam.geometry.propagate_covariance`); with ``factor="chain"`` always the chain (with the registration's
 information shape when it passed its gates: the calibration rescales it to the chain's measured noise). The chain
-can be the better factor where the frontend refines each frame against a model (``odometry.model``) and the
-direct registration carries a bias of the data: 7-Scenes, whose colour is not registered to its depth (fused with
-the model, excerpt every 4th frame, 3 deterministic seeds: 2.96 cm; seed 0: 2.94 against 3.83 with the
-registration as the factor; but threaded 3.70, 3.70, 2.73, 3.92 against 3.46 for the default frame-to-frame
-fused, so no preset uses it; docs/BENCHMARKS.md section 21). The direct registration is always measured: the
+can be the better factor where the frontend refines each frame against a model (``odometry.model``) and the direct
+registration carries a bias of the data: 7-Scenes, whose colour is registered to its depth only approximately (fused
+with the model, excerpt every 4th frame, 3 deterministic seeds: 2.96 cm; seed 0: 2.94 against 3.83 with the
+registration as the factor; but threaded 3.70, 3.70, 2.73, 3.92 against 3.46 for the default frame-to-frame fused, so
+no preset uses it; docs/BENCHMARKS.md section 21). The direct registration is always measured: the
 fusion's noise estimate compares the chain with it (:attr:`KeyframeLinkMeasurement.T_registration`).
 
 A measurement is *trusted* when the registration's fitness reaches ``gates.trusted_fitness`` (for the chain standing

@@ -87,7 +87,8 @@ class BackendConfig(StrictModel):
                                           "keep the information their registration states (its point-to-plane "
                                           "Hessian at the measured inlier RMSE, at least "
                                           "registration.information_sigma) and only the field's is calibrated; "
-                                          "for data whose colour is not registered to its depth (7-Scenes), where "
+                                          "for data whose colour is registered to its depth only approximately "
+                                          "(7-Scenes), where "
                                           "the noise estimate compares two RGB-D registrations that share that "
                                           "error (lrslam.backend.calibration)")
     loop_max_chi2: float = Field(60.0, ge=0, description="after a solve, a loop whose normalised squared residual "

@@ -113,6 +113,7 @@ class Sequence(abc.ABC):
         # 2. Native camera (the override wins) and the image size (the first selected depth image's).
         K_native = self.options.intrinsics_override()
         K_native = np.asarray(src.K, dtype=np.float64) if K_native is None else K_native
+        self._K_native = K_native
         self.depth_scale = float(self.options.depth_scale or src.depth_scale)
         w, h = self._read_native_size()
         if src.expected_size is not None and src.expected_size != (w, h):

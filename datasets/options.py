@@ -16,8 +16,9 @@ __all__ = ["ReaderOptions"]
 class ReaderOptions(StrictModel):
     """How a reader turns a dataset folder into frames.
 
-    Order of operations on each frame: (1) colour undistortion (TUM only, native intrinsics; depth untouched),
-    (2) ``resize`` of both images to ``(width, height)``, (3) ``crop_border`` pixels removed on every side.
+    Order of operations on each frame: (1) colour undistortion (TUM only, native intrinsics; depth untouched)
+    or registration to the depth camera (7-Scenes only), (2) ``resize`` of both images to ``(width, height)``,
+    (3) ``crop_border`` pixels removed on every side.
     ``Sequence.K`` / ``Frame.K`` describe the images after all three steps.
 
     Attributes:
@@ -33,6 +34,9 @@ class ReaderOptions(StrictModel):
             correct a dataset. All four or none. The override describes an ideal pinhole camera (the reader's own
             distortion model is not applied) unless ``distortion`` is given.
         distortion: OpenCV ``k1 k2 p1 p2 k3`` of the colour camera that goes with an intrinsics override.
+        register_colour: resample the colour image into the depth camera (7-Scenes only, whose Kinect recorded
+            colour and depth unregistered: :mod:`lrslam.datasets.colour_registration`; not for a folder whose
+            ``camera-intrinsics.txt`` or intrinsics override names another camera); other readers ignore it.
         depth_scale: raw depth units per metre (metres = raw / depth_scale), overriding the reader's own.
         rgb_topic, depth_topic, camera_info_topic: ROS bags only (:mod:`lrslam.datasets.rosbag`): the
             ``sensor_msgs/Image`` colour and depth topics and the ``sensor_msgs/CameraInfo`` topic to read; None =
@@ -50,6 +54,7 @@ class ReaderOptions(StrictModel):
     cy: float | None = None
     distortion: tuple[float, float, float, float, float] | None = None
     depth_scale: PositiveFloat | None = None
+    register_colour: bool = True
     rgb_topic: str | None = Field(None, description="ROS bags: the sensor_msgs/Image colour topic (None: the only "
                                   "one with a colour encoding)")
     depth_topic: str | None = Field(None, description="ROS bags: the sensor_msgs/Image depth topic (None: the only "

@@ -81,11 +81,12 @@ class FieldSLAM:
         self.initialised = True
         return stats
 
-    def track(self, rgb: np.ndarray, depth: np.ndarray, T_w_c_init: np.ndarray) -> TrackResult:
-        """Refine a seed pose against the frozen field (never raises for a bad frame: ``ok`` False, seed kept)."""
+    def track(self, rgb: np.ndarray, depth: np.ndarray, T_w_c_init: np.ndarray, early_stop: bool = True) -> TrackResult:
+        """Refine a seed pose against the frozen field (never raises for a bad frame: ``ok`` False, seed kept);
+        ``early_stop`` False: every iteration (:func:`lrslam.field.tracker.track`)."""
         self._require_init()
         model, gen = self._tracking_model()
-        return track(model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, gen)
+        return track(model, rgb, depth, self.K, T_w_c_init, self.cfg.tracking, self.cfg.render, gen, early_stop)
 
     def pose_losses(self, rgb: np.ndarray, depth: np.ndarray, poses: list[np.ndarray]) -> list[float]:
         """The frame's tracking loss at each candidate pose ``T_w_c`` on the same rays (lower: the map agrees

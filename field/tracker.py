@@ -98,19 +98,22 @@ class _Search:
 
 def track(model: SceneModel, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, T_w_c_init: np.ndarray,
           cfg: TrackerConfig = TrackerConfig(), render: RenderConfig = RenderConfig(),
-          generator: torch.Generator | None = None) -> TrackResult:
+          generator: torch.Generator | None = None, early_stop: bool = True) -> TrackResult:
     """Refine the camera pose of one frame against the frozen field.
 
     Args:
         model: the scene model (not modified). rgb: (H, W, 3) uint8. depth: (H, W) metres, 0 = invalid.
         K: (3, 3) intrinsics. T_w_c_init: (4, 4) seed pose (OpenCV camera to world).
         cfg, render: tracking and sampling settings. generator: torch RNG (CPU) for pixels and jitter.
+        early_stop: False runs all ``cfg.iters`` iterations whatever ``cfg.stop_patience`` says (a poor seed).
     Returns:
         :class:`TrackResult`.
     Raises:
         InputError: images of the wrong shape/dtype (a programming error, not a bad frame).
     """
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
+    if not early_stop:
+        cfg = cfg.model_copy(update={"stop_patience": 0})
     render = _tracking_render(cfg, render)
     T_seed = np.asarray(T_w_c_init, dtype=np.float64)
     if not is_valid_pose(T_seed):

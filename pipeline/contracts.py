@@ -53,6 +53,13 @@ class Seed:
         """Starting pose ``k`` (4, 4): 0 the seed's ``T_w_c``, k > 0 ``alternatives[k - 1]``."""
         return self.T_w_c if k == 0 else self.alternatives[k - 1]
 
+    @property
+    def uncertain(self) -> bool:
+        """The odometry registered the frame weakly (or failed), or disagrees with another starting pose (the
+        seeder's arbitration offers ``alternatives``): a refinement from it should not stop early."""
+        weak = self.odometry is not None and not self.odometry.trusted
+        return weak or bool(self.alternatives)
+
 
 @dataclass(frozen=True)
 class Refinement:
@@ -120,7 +127,8 @@ class Mapper(Stateful, Protocol):
     def must_wait(self, traj: Trajectory) -> bool:
         """The next frame should be tracked on the mapped field (call :meth:`collect` first)."""
 
-    def due(self, frame: Frame, is_keyframe: bool) -> bool: ...
+    def due(self, frame: Frame, is_keyframe: bool, seed_uncertain: bool = False) -> bool:
+        """A mapping round is due at this frame (``seed_uncertain``: its seed was :attr:`Seed.uncertain`)."""
 
     def map(self, frame: Frame, T_w_c: np.ndarray, keyframe_poses: dict[int, np.ndarray],
             add_keyframe: bool) -> dict[int, np.ndarray]: ...

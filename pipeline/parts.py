@@ -128,15 +128,18 @@ class OdometrySeeder:
 # -------------------------------------------------------------------------------------------------- refiners
 class FieldRefiner:
     """LRSLAM tracking against the frozen field from the seed (``field.tracking.accept_if_better`` keeps the
-    seed unless the refinement lowers the loss on the same rays)."""
+    seed unless the refinement lowers the loss on the same rays). ``uncertain_seed_effort``: an uncertain seed
+    (:attr:`Seed.uncertain`) is tracked with every iteration (``schedule.uncertain_seed_effort``)."""
 
-    def __init__(self, field: FieldSLAM) -> None:
+    def __init__(self, field: FieldSLAM, uncertain_seed_effort: bool = False) -> None:
         self.field = field   # owned by the FieldMapper; the refiner only tracks against it
+        self.uncertain_seed_effort = uncertain_seed_effort
 
     def refine(self, frame: Frame, seed: Seed) -> Refinement:
         start, note = self._start(frame, seed)
         T0 = seed.candidate(start)
-        res = self.field.track(frame.rgb, frame.depth, T0)
+        full = self.uncertain_seed_effort and seed.uncertain
+        res = self.field.track(frame.rgb, frame.depth, T0, early_stop=not full)
         if not res.ok:
             return Refinement(T0, False, False, None, f"field tracking fell back to its starting pose: {res.reason}",
                               res.iters, start)
@@ -206,9 +209,10 @@ class FieldMapper:
     and :meth:`collect` the current one's."""
 
     def __init__(self, field: FieldSLAM, map_every: int, background: bool = False,
-                 wait_motion: tuple[float, float] = (np.inf, np.inf)) -> None:
+                 wait_motion: tuple[float, float] = (np.inf, np.inf), map_uncertain_seeds: bool = False) -> None:
         self.field = field
         self.map_every = map_every
+        self.map_uncertain_seeds = map_uncertain_seeds
         self.background = background
         self.wait_motion = wait_motion
 
@@ -243,8 +247,8 @@ class FieldMapper:
         if self.background:
             self.field.start_background_mapping()
 
-    def due(self, frame: Frame, is_keyframe: bool) -> bool:
-        return is_keyframe or frame.index % self.map_every == 0
+    def due(self, frame: Frame, is_keyframe: bool, seed_uncertain: bool = False) -> bool:
+        return is_keyframe or frame.index % self.map_every == 0 or (self.map_uncertain_seeds and seed_uncertain)
 
     def map(self, frame: Frame, T_w_c: np.ndarray, keyframe_poses: dict, add_keyframe: bool) -> dict:
         """One mapping round at ``T_w_c``; returns optimised poses ``{frame id: T_w_c}`` (of this round, or of
@@ -300,9 +304,10 @@ def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: n
 
         field = FieldSLAM(cfg.field, np.asarray(bound, dtype=np.float64), K, height, width)
     return Parts(_seeder(cfg, K, height, width, field is not None), _keyframer(cfg),
-                 FieldRefiner(field) if field is not None else None,
+                 FieldRefiner(field, sc.uncertain_seed_effort) if field is not None else None,
                  None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
-                                                        (sc.background_wait_m, sc.background_wait_deg)),
+                                                        (sc.background_wait_m, sc.background_wait_deg),
+                                                        sc.uncertain_seed_effort),
                  _backend(cfg, field) if p.backend == "graph" else None,
                  _fusion(cfg) if field is not None and p.seeder == "odometry" and cfg.fusion.per_frame else None)
 

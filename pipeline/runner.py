@@ -167,7 +167,7 @@ class SlamRunner:
 
         # 4. map (the window poses the mapper refined go back into the trajectory; in the background, those of
         #    the previous round)
-        if p.mapper is not None and rec.has_depth and p.mapper.due(frame, rec.keyframe):
+        if p.mapper is not None and rec.has_depth and p.mapper.due(frame, rec.keyframe, seed.uncertain):
             with self.timer("map"):
                 self._write_mapped(p.mapper.map(frame, T, self.traj.keyframe_poses(), add_keyframe=rec.keyframe))
 

@@ -197,6 +197,7 @@ def test_early_stop_ends_when_the_best_loss_stops_dropping(fitted, scene_frames)
         **base, stop_patience=3, stop_min_improvement=0.99, min_iters=5)})
     res = fitted.track(*frames[6], poses[6])
     assert res.ok and res.iters == 5, res.iters
+    assert fitted.track(*frames[6], poses[6], early_stop=False).iters == 40   # an uncertain seed: every iteration
     # a real criterion from a perturbed seed: stops early and still improves on the seed's loss
     fitted.cfg = fitted.cfg.model_copy(update={"tracking": TrackerConfig(
         **base, lr_rot=0.005, lr_trans=0.01, stop_patience=4, stop_min_improvement=0.02)})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -392,10 +394,10 @@ def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
             self.asked.append([np.array(T) for T in poses])
             return self.losses
 
-        def track(self, rgb, depth, T0):
+        def track(self, rgb, depth, T0, early_stop=True):
             from lrslam.field.tracker import TrackResult
 
-            self.started = np.array(T0)
+            self.started, self.early_stop = np.array(T0), early_stop
             return TrackResult(T0, True, 1.0, 1.0, 3, accepted=True)
 
     traj = Trajectory()
@@ -423,6 +425,31 @@ def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
     field = _Field([1.0, 0.5])
     FieldRefiner(field).refine(_frame(2), agree)
     assert field.asked == []                                  # no alternative: no extra render
+
+    # schedule.uncertain_seed_effort: a seed that disagrees with the guess (or a weak registration) is uncertain
+    # and tracked with every iteration; a certain one keeps the early stop, and so does every seed with it off
+    weak = OdometrySeeder(_Odometry(make_pose(np.eye(3), [0.06, 0.0, 0.0])), (0.02, 2.0)).seed(_frame(2), traj)
+    weak = replace(weak, odometry=replace(weak.odometry, trusted=False))
+    assert (agree.uncertain, seed.uncertain, weak.uncertain) == (False, True, True)
+    from lrslam.pipeline.contracts import Seed
+    assert not Seed(np.eye(4)).uncertain                      # no frontend, no alternative
+    for effort, s, early in ((True, agree, True), (True, seed, False), (True, weak, False), (False, seed, True),
+                             (False, weak, True)):
+        field = _Field([1.0, 2.0])
+        FieldRefiner(field, uncertain_seed_effort=effort).refine(_frame(2), s)
+        assert field.early_stop is early, (effort, s.uncertain)
+
+
+def test_an_uncertain_seed_gets_a_mapping_round():
+    """``schedule.uncertain_seed_effort``: the mapper maps a frame whose seed was uncertain, as it maps a
+    keyframe and every ``map_every``-th frame."""
+    from lrslam.pipeline.parts import FieldMapper
+
+    on, off = FieldMapper(None, 4, map_uncertain_seeds=True), FieldMapper(None, 4)
+    assert [on.due(_frame(i), False, True) for i in (4, 5, 6)] == [True, True, True]
+    assert [on.due(_frame(i), False, False) for i in (4, 5, 6)] == [True, False, False]
+    assert [off.due(_frame(i), False, True) for i in (4, 5, 6)] == [True, False, False]
+    assert on.due(_frame(5), True, False) and off.due(_frame(5), True, True)
 
 
 def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
