@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lrslam.camera import pixel_directions, project_points, transform_points
+
 __all__ = ["ColourToDepth"]
 
 
@@ -33,16 +35,7 @@ class ColourToDepth:
         self.K_depth = np.asarray(K_depth, dtype=np.float64)
         self.K_colour = np.asarray(K_colour, dtype=np.float64)
         self.T_colour_depth = np.asarray(T_colour_depth, dtype=np.float64)
-        self._rays: dict[tuple[int, int], np.ndarray] = {}
-
-    def _unit_rays(self, width: int, height: int) -> np.ndarray:
-        """(H, W, 3) float64 ``K_d^-1 [u, v, 1]`` of every depth pixel (cached per size)."""
-        key = (width, height)
-        if key not in self._rays:
-            u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-            pix = np.stack([u, v, np.ones_like(u)], axis=-1)
-            self._rays[key] = pix @ np.linalg.inv(self.K_depth).T
-        return self._rays[key]
+        self._rays: dict[tuple[int, int], np.ndarray] = {}   # (H, W) -> pixel_directions of the depth camera
 
     def sample_positions(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each depth pixel is seen in the colour image.
@@ -53,19 +46,15 @@ class ColourToDepth:
             ``(map_x, map_y)``, each (H, W) float32: colour-image pixel coordinates (``cv2.remap`` maps).
         """
         h, w = depth.shape
-        rays = self._unit_rays(w, h)
-        R, t = self.T_colour_depth[:3, :3], self.T_colour_depth[:3, 3]
-        z = depth.astype(np.float64)[..., None]
-        valid = z > 0
-        # a pixel with depth: its point; without: its direction (t vanishes at infinity)
-        X_c = np.where(valid, (rays * z) @ R.T + t, rays @ R.T)
-        p = X_c @ self.K_colour.T
-        zc = p[..., 2]
-        ok = zc > 1e-9
-        safe = np.where(ok, zc, 1.0)
-        map_x = np.where(ok, p[..., 0] / safe, -1.0).astype(np.float32)
-        map_y = np.where(ok, p[..., 1] / safe, -1.0).astype(np.float32)
-        return map_x, map_y
+        if (h, w) not in self._rays:
+            self._rays[(h, w)] = pixel_directions(self.K_depth, h, w)
+        rays = self._rays[(h, w)].reshape(-1, 3)
+        z = depth.astype(np.float64).reshape(-1, 1)
+        # a pixel with depth: its point; without: its direction (the translation vanishes at infinity)
+        X_c = np.where(z > 0, transform_points(self.T_colour_depth, rays * z), rays @ self.T_colour_depth[:3, :3].T)
+        uv, zc = project_points(X_c, self.K_colour)
+        uv = np.where((zc > 1e-9)[:, None], uv, -1.0).astype(np.float32).reshape(h, w, 2)
+        return np.ascontiguousarray(uv[..., 0]), np.ascontiguousarray(uv[..., 1])
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """``rgb`` (Hc, Wc, 3) uint8 in the colour camera -> (H, W, 3) uint8 on ``depth``'s (H, W) pixel grid."""
