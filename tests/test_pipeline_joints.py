@@ -454,7 +454,8 @@ def test_an_uncertain_seed_gets_a_mapping_round():
 
 def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
     """The runner hands the odometry's trust to the fusion: with ``trusted_fitness`` 1 every registration is weak
-    (counted in ``seeds_weak``) and every refined frame takes the field's share 1; at the default none is weak on
+    (counted in ``seeds_weak``), every refined frame takes the field's share 1 and every frame is mapped (its seed is
+    uncertain); at the default none is weak on
     this easy sequence and the fusion weighs the two (Open3D runs threaded here: which frames the field's seed
     arbitration overrules may vary, so those are left out)."""
     from run_fixtures import TINY, synthetic_room
@@ -464,7 +465,7 @@ def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
     seq = open_sequence(synthetic_room(tmp_path / "room", n_frames=6, seed=3))
     frames = [seq[i] for i in range(len(seq))]
     f0 = frames[0]
-    gains = {}
+    gains, mapped = {}, {}
     for trusted_fitness in (1.0, 0.55):
         cfg = build_config("synthetic", mode="fused", deterministic=True,
                            overrides=TINY + [f"odometry.gates.trusted_fitness={trusted_fitness}"])
@@ -477,5 +478,9 @@ def test_the_runner_fuses_a_weak_odometry_frame_as_the_fields_word(tmp_path):
         assert refined
         assert sum(r.seed_weak for r in recs) == (len(recs) if trusted_fitness == 1.0 else 0)
         gains[trusted_fitness] = {r.fusion_gain for r in refined}
+        mapped[trusted_fitness] = runner.timer.summary(len(recs))["map"]["calls"]
     assert gains[1.0] == {(1.0, 1.0)}
     assert all(g != (1.0, 1.0) for g in gains[0.55])
+    # schedule.uncertain_seed_effort (on in fused mode): a weak seed is uncertain, so every frame gets a mapping
+    # round (the map timer also counts the first frame's); at the default fewer
+    assert mapped[1.0] >= len(recs) > mapped[0.55], mapped
