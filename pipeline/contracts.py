@@ -54,11 +54,15 @@ class Seed:
         return self.T_w_c if k == 0 else self.alternatives[k - 1]
 
     @property
+    def weak(self) -> bool:
+        """The odometry registered the frame below ``gates.trusted_fitness``, or failed (no frontend: False)."""
+        return self.odometry is not None and not self.odometry.trusted
+
+    @property
     def uncertain(self) -> bool:
         """The odometry registered the frame weakly (or failed), or disagrees with another starting pose (the
         seeder's arbitration offers ``alternatives``): a refinement from it should not stop early."""
-        weak = self.odometry is not None and not self.odometry.trusted
-        return weak or bool(self.alternatives)
+        return self.weak or bool(self.alternatives)
 
 
 @dataclass(frozen=True)

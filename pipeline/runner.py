@@ -144,7 +144,7 @@ class SlamRunner:
         with self.timer("seed"):
             seed = p.seeder.seed(frame, self.traj)
         rec.seed_ok = seed.ok
-        rec.seed_weak = seed.ok and seed.odometry is not None and not seed.odometry.trusted
+        rec.seed_weak = seed.ok and seed.weak   # a failed odometry is counted in seed_failures
         if seed.note:
             rec.notes.append(seed.note)
         if p.backend is not None:

@@ -431,6 +431,7 @@ def test_the_field_arbitrates_between_the_odometry_seed_and_constant_velocity():
     weak = OdometrySeeder(_Odometry(make_pose(np.eye(3), [0.06, 0.0, 0.0])), (0.02, 2.0)).seed(_frame(2), traj)
     weak = replace(weak, odometry=replace(weak.odometry, trusted=False))
     assert (agree.uncertain, seed.uncertain, weak.uncertain) == (False, True, True)
+    assert (agree.weak, seed.weak, weak.weak) == (False, False, True)
     from lrslam.pipeline.contracts import Seed
     assert not Seed(np.eye(4)).uncertain                      # no frontend, no alternative
     for effort, s, early in ((True, agree, True), (True, seed, False), (True, weak, False), (False, seed, True),
