@@ -155,7 +155,7 @@ def main() -> int:
         return 2
     first = seq[0]
     T0 = gt[0] if cfg.initial_pose == "gt" else np.eye(4)
-    bound = choose_bound(cfg, seq, first, T0)[0]
+    bound = choose_bound(cfg, seq, first, T0).bound
     runner = SlamRunner(cfg, first.K, first.height, first.width, bound)
     recorded: list[_Measurement] = []
     _instrument(runner, recorded)

@@ -141,7 +141,7 @@ def paired_ratio(seq: Path, preset: str, stride: int, frames: int, overrides: li
     seq = open_sequence(seq, reader=cfg0.dataset.reader, options=cfg0.reader_options())
     first = seq[0]
     T0 = first.T_w_c_gt if first.T_w_c_gt is not None else np.eye(4)
-    bound, _ = choose_bound(cfg0, seq, first, T0)
+    bound = choose_bound(cfg0, seq, first, T0).bound
     runners, secs = {}, {r: [] for r in cfgs}
     for r, cfg in cfgs.items():
         t0 = time.perf_counter()

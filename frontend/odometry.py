@@ -16,6 +16,11 @@ Per frame (:meth:`Odometry.track`):
 7. update the velocity and the reference (the previous frame in ``mode="frame"``; in ``mode="keyframe"`` the
    reference changes when the camera has moved far from it or the fitness drops).
 
+A pass can be recorded (``record=True``: :meth:`Odometry.trace`) and replayed by another odometry with the same
+config, camera and first pose (``replay=``): steps 1-6 are skipped for every frame whose images are the
+recorded ones (in the recorded order), step 7 runs as usual, so the replaying odometry ends in the state it would
+have reached by registering (the run's bound pre-pass and the fused run's frontend register the same frames).
+
 The poses here are the **frontend's own estimate** (odometry alone, never corrected by the field or the graph):
 the pipeline uses the per-frame motion ``T_prev_c`` as a seed and the chained estimate as an independent
 measurement; it never writes poses back. Only the reference frame's images (and their cached preprocessing)
@@ -25,6 +30,7 @@ are kept.
 from __future__ import annotations
 
 import logging
+import zlib
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Literal
@@ -41,7 +47,7 @@ from lrslam.frontend.registration import (RegistrationConfig, RegistrationGates,
 from lrslam.frontend.rgbd_view import FrameLike, RGBDView, as_view
 from lrslam.geometry import constant_velocity, inv, is_valid_pose, pose_error
 
-__all__ = ["OdometryConfig", "OdometryResult", "Odometry"]
+__all__ = ["OdometryConfig", "OdometryResult", "OdometryStep", "OdometryTrace", "Odometry"]
 
 log = logging.getLogger(__name__)
 
@@ -106,16 +112,52 @@ class OdometryResult:
     trusted: bool = True
 
 
-class Odometry:
-    """Tracks a sequence of RGB-D frames from one camera (intrinsics ``K`` (3, 3), images ``height`` x ``width``)."""
+@dataclass(frozen=True)
+class OdometryStep:
+    """One frame of a recorded pass: its ``result``, why it could not be registered (``problem``; None when it
+    could, see :func:`~lrslam.frontend.registration.frame_problem`) and ``fingerprint`` (CRC-32 of its depth
+    and colour bytes: a replay only uses the step for the same images)."""
 
-    def __init__(self, cfg: OdometryConfig, K: np.ndarray, height: int, width: int):
+    result: OdometryResult
+    problem: str | None
+    fingerprint: int
+
+
+@dataclass(frozen=True)
+class OdometryTrace:
+    """A recorded pass (:meth:`Odometry.trace`): the ``config``, intrinsics ``K`` (3, 3) and first pose
+    ``T_w_c0`` (4, 4) it ran with, and one step per tracked frame in order. Replayed only by an odometry with the
+    same config, intrinsics and first pose."""
+
+    config: OdometryConfig
+    K: np.ndarray
+    T_w_c0: np.ndarray
+    steps: tuple[OdometryStep, ...]
+
+
+def _fingerprint(view: RGBDView) -> int:
+    return zlib.crc32(view.rgb, zlib.crc32(view.depth))
+
+
+class Odometry:
+    """Tracks a sequence of RGB-D frames from one camera (intrinsics ``K`` (3, 3), images ``height`` x ``width``).
+
+    ``record``: keep every frame's result for :meth:`trace`. ``replay``: a trace of an earlier pass; from
+    :meth:`reset` on, each frame that matches the trace's next step (same index and images, same config,
+    intrinsics and first pose) takes the recorded result instead of being registered again; from the first
+    frame that does not, every frame is registered (logged once)."""
+
+    def __init__(self, cfg: OdometryConfig, K: np.ndarray, height: int, width: int, *, record: bool = False,
+                 replay: OdometryTrace | None = None):
         try:
             self.K = check_intrinsics(K, width, height)
         except ValueError as e:
             raise InputError(f"odometry: {e}") from None
         self.cfg = cfg
         self.height, self.width = int(height), int(width)
+        self._record = record
+        self._replay = replay
+        self.replayed = 0   # frames that took a recorded result since the last reset
         self.reset()
 
     # -- state -----------------------------------------------------------------------------------------------
@@ -137,7 +179,36 @@ class Odometry:
         self._failures = 0
         self._model = (ModelTracker(self.cfg.model, self.K, self.height, self.width) if self.cfg.model.enabled
                        else None)
+        self._steps: list[OdometryStep] = []
+        r = self._replay
+        self._replay_at = 0 if (r is not None and r.config == self.cfg and np.array_equal(r.K, self.K)
+                                and np.array_equal(r.T_w_c0, T0)) else None
+        if r is not None:
+            log.info("odometry: %s", f"replaying a recorded {len(r.steps)}-frame pass where the frames match"
+                     if self._replay_at is not None else "the recorded pass ran with another config, camera or "
+                     "first pose; every frame is registered")
+        self.replayed = 0
         return self.track(frame) if frame is not None else None
+
+    def trace(self) -> OdometryTrace:
+        """The frames tracked since the last :meth:`reset`, for another odometry to replay (needs ``record``)."""
+        if not self._record:
+            raise RuntimeError("Odometry.trace: built without record=True")
+        return OdometryTrace(self.cfg, self.K.copy(), self._T_w_c0.copy(), tuple(self._steps))
+
+    def _recorded(self, index: int, view: RGBDView) -> OdometryStep | None:
+        """The replayed trace's step for this frame, or None (then no later frame is replayed either)."""
+        if self._replay_at is None:
+            return None
+        steps = self._replay.steps
+        at = self._replay_at
+        if at < len(steps) and steps[at].result.frame_index == index and steps[at].fingerprint == _fingerprint(view):
+            self._replay_at += 1
+            self.replayed += 1
+            return steps[at]
+        log.info("odometry: frame %d is not the recorded pass's next frame; registering from here on", index)
+        self._replay_at = None
+        return None
 
     @property
     def reference_index(self) -> int | None:
@@ -191,10 +262,29 @@ class Odometry:
         """Estimate the pose of ``frame`` (needs ``index``, ``rgb``, ``depth``, ``K``; see module docstring)."""
         index = int(frame.index)
         view = self._view(frame)
-        gates = self.cfg.gates
-        problem = frame_problem(view, self.cfg.registration, gates)
+        step = self._recorded(index, view)
+        if step is not None:
+            result, problem = step.result, step.problem
+        else:
+            problem = frame_problem(view, self.cfg.registration, self.cfg.gates)
+            result = self._first(index, view, problem) if self._last_index is None else \
+                self._register(index, view, problem)
+        if self._record:
+            self._steps.append(OdometryStep(result, problem, _fingerprint(view)))
+        # 7. Update velocity and reference.
         if self._last_index is None:
-            return self._first(index, view, problem)
+            self._start(index, view, problem)
+            return result
+        if self._model is not None and result.ok and problem is None:
+            self._model.integrate(view.rgb, view.depth, result.T_w_c)
+        self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, result.T_w_c, index
+        self._last_view = view if problem is None else None
+        self._update_reference(index, view, problem, result)
+        return result
+
+    def _register(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
+        """Steps 1-6 for a frame after the first: its result (the state is not changed)."""
+        gates = self.cfg.gates
 
         # 1. Constant-velocity prediction.
         T_w_pred = self.predict()
@@ -225,18 +315,10 @@ class Odometry:
             # 6. Fallback to the prediction.
             info = fallback_information(gates)
             log.info("frame %d: odometry failed (%s); using the constant-velocity prediction", index, reason)
-        result = OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
-                                reg.fitness if reg is not None else 0.0,
-                                reg.inlier_rmse if reg is not None else float("inf"), reason,
-                                inv(self._T_w_last) @ T_w_c, attempt, ok and reg.trusted)
-
-        if self._model is not None and ok and problem is None:
-            self._model.integrate(view.rgb, view.depth, T_w_c)
-        # 7. Update velocity and reference.
-        self._T_w_prev, self._T_w_last, self._last_index = self._T_w_last, T_w_c, index
-        self._last_view = view if problem is None else None
-        self._update_reference(index, view, problem, result)
-        return result
+        return OdometryResult(index, T_w_c, T_ref_c, ref_index, info, ok,
+                              reg.fitness if reg is not None else 0.0,
+                              reg.inlier_rmse if reg is not None else float("inf"), reason,
+                              inv(self._T_w_last) @ T_w_c, attempt, ok and reg.trusted)
 
     def _refine_with_model(self, index: int, view: RGBDView, T_w_c: np.ndarray, attempt: str) -> tuple[np.ndarray, str]:
         """5. Frame-to-model refinement of a registered slow frame (kept only when small and well supported):
@@ -260,18 +342,23 @@ class Odometry:
             yield retry_method, T_w_pred, registration.model_copy(update={"method": retry_method})
 
     def _first(self, index: int, view: RGBDView, problem: str | None) -> OdometryResult:
-        self._last_index = index
-        self._last_view = view if problem is None else None
+        """The first frame's result: the first pose, ok when the frame is usable."""
         if problem is None:
-            self._set_reference(index, view, self._T_w_c0)
             reason, ok = "first frame", True
-            if self._model is not None:
-                self._model.integrate(view.rgb, view.depth, self._T_w_c0)
         else:
             reason, ok = f"first frame: {problem}", False
             log.info("frame %d: %s", index, reason)
         return OdometryResult(index, self._T_w_c0.copy(), np.eye(4), index, fallback_information(self.cfg.gates), ok,
                               1.0 if ok else 0.0, 0.0 if ok else float("inf"), reason)
+
+    def _start(self, index: int, view: RGBDView, problem: str | None) -> None:
+        """Step 7 for the first frame: it becomes the reference (and enters the model) when usable."""
+        self._last_index = index
+        self._last_view = view if problem is None else None
+        if problem is None:
+            self._set_reference(index, view, self._T_w_c0)
+            if self._model is not None:
+                self._model.integrate(view.rgb, view.depth, self._T_w_c0)
 
     def _update_reference(self, index: int, view: RGBDView, problem: str | None, res: OdometryResult) -> None:
         if problem is not None:

@@ -2,7 +2,9 @@
 
 * :func:`bound_from_prepass` (``bound: auto``): a fast frontend pre-pass over the whole sequence (RGB-D odometry
   from :class:`lrslam.frontend.odometry.Odometry`, no field) collects camera centres and subsampled depth points
-  in the world frame; the bound is their robust extent (0.1 / 99.9 percentiles) grown by a margin.
+  in the world frame; the bound is their robust extent (0.1 / 99.9 percentiles) grown by a margin. The pass is
+  recorded (:class:`lrslam.frontend.odometry.OdometryTrace`): a fused run's frontend, which registers the same
+  frames with the same settings, replays it instead of registering every frame a second time.
 * :func:`bound_from_frame`: the old default, the first frame's points plus a margin.
 * :class:`BoundCoverage`: counts the frames whose view leaves the bound by more than a fraction of their valid
   pixels (warned once per frame at most; the count goes into metrics).
@@ -12,11 +14,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lrslam.camera import backproject_depth, strided_intrinsics, transform_points
 from lrslam.errors import InputError
+
+if TYPE_CHECKING:
+    from lrslam.frontend.odometry import OdometryTrace
 
 __all__ = ["bound_from_frame", "bound_from_prepass", "fraction_outside", "BoundCoverage", "PREPASS_TAIL_PCT"]
 
@@ -58,17 +64,18 @@ def bound_from_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, margin
 
 def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = 1.0,
                        max_depth: float = 6.0, pixel_stride: int = 8,
-                       progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                       progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, OdometryTrace]:
     """Bound (3, 2) metres (world frame, first camera at ``T_w_c0``) covering every frame of ``seq`` seen from
     its odometry pose: camera centres and depth points (every ``pixel_stride``-th pixel, depth < ``max_depth``
-    metres), 0.1-99.9 percentile extent plus ``margin`` metres. ``progress(done, total)`` after each frame.
+    metres), 0.1-99.9 percentile extent plus ``margin`` metres, and the odometry pass's trace (for a run's
+    frontend to replay). ``progress(done, total)`` after each frame.
     Frame to frame only (``odometry_cfg.model`` off): a bound with a metre of margin does not need the
     frame-to-model refinement's centimetres, and the pre-pass would pay it on every frame."""
     from lrslam.frontend.odometry import Odometry
 
     first = seq[0]
     odometry_cfg = odometry_cfg.model_copy(update={"model": odometry_cfg.model.model_copy(update={"enabled": False})})
-    odo = Odometry(odometry_cfg, first.K, first.height, first.width)
+    odo = Odometry(odometry_cfg, first.K, first.height, first.width, record=True)
     odo.reset(np.asarray(T_w_c0, dtype=np.float64), first)
     centres, points = [T_w_c0[:3, 3]], [_world_points(first.depth, first.K, T_w_c0, max_depth, pixel_stride)]
     n_lost = 0
@@ -87,7 +94,7 @@ def bound_from_prepass(seq, odometry_cfg, T_w_c0: np.ndarray, margin: float = 1.
     b = _extent(np.vstack([pts, centres]), np.asarray(centres), margin, PREPASS_TAIL_PCT)
     log.info("bound: auto from a %d-frame odometry pre-pass (%d frames lost): %s", len(seq), n_lost,
              np.round(b, 3).tolist())
-    return b
+    return b, odo.trace()
 
 
 def fraction_outside(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, bound: np.ndarray,

@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # annotations only: torch, GTSAM and Open3D load when a part 
     from lrslam.backend.policy import GraphBackend
     from lrslam.field.slam import FieldSLAM
     from lrslam.frontend.keyframes import KeyframePolicy
-    from lrslam.frontend.odometry import Odometry
+    from lrslam.frontend.odometry import Odometry, OdometryTrace
 
 __all__ = ["ConstantVelocitySeeder", "OdometrySeeder", "FieldRefiner", "EveryNKeyframer", "PolicyKeyframer",
            "FieldMapper", "Parts", "build_parts"]
@@ -294,16 +294,18 @@ class Parts:
     fusion: Fusion | None = None
 
 
-def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray) -> Parts:
+def build_parts(cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray,
+                odometry_trace: OdometryTrace | None = None) -> Parts:
     """Build the configured parts (``cfg.parts``); each gets its own config section only. The combinations
-    were checked when ``cfg`` was built (:meth:`lrslam.pipeline.config.RunConfig._check_parts`)."""
+    were checked when ``cfg`` was built (:meth:`lrslam.pipeline.config.RunConfig._check_parts`).
+    ``odometry_trace``: an earlier pass over the same frames that the odometry seeder replays where it matches."""
     p, sc = cfg.parts, cfg.schedule
     field = None
     if p.refiner == "field":
         from lrslam.field.slam import FieldSLAM
 
         field = FieldSLAM(cfg.field, np.asarray(bound, dtype=np.float64), K, height, width)
-    return Parts(_seeder(cfg, K, height, width, field is not None), _keyframer(cfg),
+    return Parts(_seeder(cfg, K, height, width, field is not None, odometry_trace), _keyframer(cfg),
                  FieldRefiner(field, sc.uncertain_seed_effort) if field is not None else None,
                  None if field is None else FieldMapper(field, sc.map_every, sc.background_mapping,
                                                         (sc.background_wait_m, sc.background_wait_deg),
@@ -318,14 +320,15 @@ def _fusion(cfg: RunConfig) -> Fusion:
     return FrameFusion(cfg.fusion)
 
 
-def _seeder(cfg: RunConfig, K: np.ndarray, height: int, width: int, with_field: bool) -> Seeder:
+def _seeder(cfg: RunConfig, K: np.ndarray, height: int, width: int, with_field: bool,
+            odometry_trace: OdometryTrace | None) -> Seeder:
     sc = cfg.schedule
     if cfg.parts.seeder == "constant_velocity":
         return ConstantVelocitySeeder(sc.velocity_model)
-    from lrslam.frontend.odometry import Odometry
+    from lrslam.frontend.odometry import Odometry, OdometryTrace
 
     arbitrate = with_field and sc.seed_arbitration
-    return OdometrySeeder(Odometry(cfg.odometry, K, height, width),
+    return OdometrySeeder(Odometry(cfg.odometry, K, height, width, replay=odometry_trace),
                           (sc.seed_disagreement_m, sc.seed_disagreement_deg) if arbitrate else None)
 
 

@@ -38,9 +38,10 @@ from lrslam.pipeline.slam import FrameResult, Slam
 from lrslam.pipeline.timing import StageTimer
 
 if TYPE_CHECKING:
+    from lrslam.frontend.odometry import OdometryTrace
     from lrslam.pipeline.viewer import RerunViewer
 
-__all__ = ["run_sequence", "RunResult", "choose_bound"]
+__all__ = ["run_sequence", "RunResult", "choose_bound", "BoundChoice"]
 
 log = logging.getLogger(__name__)
 
@@ -85,25 +86,38 @@ def _bound_plan(cfg: RunConfig, seq) -> str:
     return "first_frame"
 
 
+@dataclass(frozen=True)
+class BoundChoice:
+    """The field's scene ``bound`` (3, 2) metres (world frame), where it came from (``source``) and, when it
+    came from the odometry pre-pass, that pass's ``trace`` (the run's frontend replays it)."""
+
+    bound: np.ndarray
+    source: str
+    trace: OdometryTrace | None = None
+
+
 def choose_bound(cfg: RunConfig, seq, first, T0: np.ndarray,
-                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, str]:
+                 progress: Callable[[int, int], None] | None = None) -> BoundChoice:
     """The field's scene bound (3, 2) in metres (world frame, first camera at ``T0``) and where it came from:
     ``given`` (a list in the config), ``dataset`` (the sequence states it), ``auto (pre-pass)`` (an odometry pass
-    over the whole sequence: ``bound: auto``, or no bound and a field; ``progress(done, total)`` per frame),
+    over the whole sequence: ``bound: auto``, or no bound and a field; ``progress(done, total)`` per frame; Open3D
+    on the run's threads, :func:`open3d_threads`, so the pass registers as the run's frontend would),
     ``auto (first frame)`` (its points plus ``auto_bound_margin``: a run without a field needs no pre-pass). See
     :class:`RunConfig` ``bound``."""
-    plan = _bound_plan(cfg, seq)
+    plan, trace = _bound_plan(cfg, seq), None
     if plan == "given":
         b, src = np.asarray(cfg.bound, dtype=np.float64), "given"
     elif plan == "dataset":
         b, src = np.asarray(seq.bound, dtype=np.float64), "dataset"
     elif plan == "prepass":
-        b, src = bound_from_prepass(seq, cfg.odometry, T0, cfg.auto_bound_margin, progress=progress), "auto (pre-pass)"
+        with open3d_threads(cfg.deterministic):
+            b, trace = bound_from_prepass(seq, cfg.odometry, T0, cfg.auto_bound_margin, progress=progress)
+        src = "auto (pre-pass)"
     else:
         b, src = bound_from_frame(first.depth, first.K, T0, margin=cfg.auto_bound_margin), "auto (first frame)"
     if b.shape != (3, 2) or not np.all(np.isfinite(b)) or np.any(b[:, 1] <= b[:, 0]):
         raise InputError(f"scene bound must be 3 finite [min, max] pairs with min < max, got {b.tolist()}")
-    return b, src
+    return BoundChoice(b, src, trace)
 
 
 def _config_record(cfg: RunConfig, seq, prov: dict) -> dict:
@@ -207,7 +221,8 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
     t_start = time.perf_counter()
     prepass = progress and _bound_plan(cfg, seq) == "prepass"
     with _bar(prepass, len(seq), "scene bound (odometry pre-pass)", "frame") as on_frame:
-        bound, bound_src = choose_bound(cfg, seq, first, T0, on_frame)
+        choice = choose_bound(cfg, seq, first, T0, on_frame)
+    bound, bound_src = choice.bound, choice.source
     bound_s = time.perf_counter() - t_start
     where = f"scene bound: {bound_src}, {np.round(bound, 2).tolist()} m ({bound_s:.1f} s)"
     log.info("sequence %s: %d frames, reader %s, mode %s, seed %d; %s", path, len(seq), seq.name, cfg.mode, cfg.seed,
@@ -218,7 +233,7 @@ def _new_run(path, cfg: RunConfig, seq, first, timer: StageTimer, progress: bool
     fit = progress and cfg.parts.refiner == "field"
     with _bar(fit, cfg.field.mapping.first_iters, "first-frame fit", "it") as on_fit:
         slam = Slam(cfg, first.K, (first.width, first.height), bound=bound, T_w_c0=T0, timer=timer, progress=on_fit,
-                    observers=[viewer] if viewer is not None else [])
+                    observers=[viewer] if viewer is not None else [], odometry_trace=choice.trace)
         slam.track(first.rgb, first.depth, first.timestamp)
     coverage = BoundCoverage(bound) if cfg.parts.refiner == "field" else None
     return _Progress(slam, bound_src, coverage, [time.perf_counter() - t_frame], t_start, 1, [], bound_s)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, field as dc_field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,6 +31,9 @@ from lrslam.pipeline.contracts import Refinement, Seed
 from lrslam.pipeline.parts import Parts, build_parts
 from lrslam.pipeline.timing import StageTimer
 from lrslam.pipeline.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from lrslam.frontend.odometry import OdometryTrace
 
 __all__ = ["SlamRunner", "FrameRecord", "SlamResult"]
 
@@ -94,13 +98,15 @@ class SlamRunner:
         K: (3, 3) intrinsics; height, width: image size in pixels.
         bound: (3, 2) scene bound in metres (world frame) for the field.
         timer: accumulates per-stage wall time.
+        odometry_trace: an earlier odometry pass over the same frames for the frontend to replay (see
+            :func:`build_parts`).
     """
 
     def __init__(self, cfg: RunConfig, K: np.ndarray, height: int, width: int, bound: np.ndarray,
-                 timer: StageTimer | None = None) -> None:
+                 timer: StageTimer | None = None, *, odometry_trace: OdometryTrace | None = None) -> None:
         self.timer = timer or StageTimer()
         self.traj = Trajectory(interpolate=cfg.schedule.interpolate_non_keyframes)
-        self.parts: Parts = build_parts(cfg, K, height, width, bound)
+        self.parts: Parts = build_parts(cfg, K, height, width, bound, odometry_trace)
         self._seeds: list[np.ndarray] = []
         self._frontend: list[np.ndarray] = []
         self._records: list[FrameRecord] = []

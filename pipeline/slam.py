@@ -29,6 +29,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +41,9 @@ from lrslam.pipeline.determinism import open3d_threads, seed_everything
 from lrslam.pipeline.observer import FrameEvent, SlamObserver
 from lrslam.pipeline.runner import FrameRecord, SlamResult, SlamRunner
 from lrslam.pipeline.timing import StageTimer
+
+if TYPE_CHECKING:
+    from lrslam.frontend.odometry import OdometryTrace
 
 __all__ = ["Slam", "FrameResult"]
 
@@ -83,6 +87,8 @@ class Slam:
         timer: accumulates per-stage wall time (a new one when None).
         progress: ``progress(done, total)`` per iteration of the field's first-frame fit (the longest step).
         observers: watch every frame and the end of the run (:meth:`add_observer`).
+        odometry_trace: an odometry pass over the frames to come (``lrslam run``'s bound pre-pass), replayed by
+            the frontend where its config, camera, first pose and images match (:class:`Odometry`'s ``replay``).
 
     A new Slam seeds Python's, numpy's and torch's RNGs with ``config.seed``: two runs with the same config and
     frames repeat (bit for bit with ``config.deterministic`` on the CPU).
@@ -91,7 +97,7 @@ class Slam:
     def __init__(self, config: RunConfig, K: np.ndarray, image_size: tuple[int, int], *,
                  bound: np.ndarray | None = None, T_w_c0: np.ndarray | None = None, timer: StageTimer | None = None,
                  progress: Callable[[int, int], None] | None = None,
-                 observers: Iterable[SlamObserver] = ()) -> None:
+                 observers: Iterable[SlamObserver] = (), odometry_trace: OdometryTrace | None = None) -> None:
         self.cfg = config
         self.K = np.asarray(K, dtype=np.float64)
         self.width, self.height = (int(x) for x in image_size)
@@ -106,6 +112,7 @@ class Slam:
         self.timestamps: list[float] = []
         self.runner: SlamRunner | None = None
         self.observers: list[SlamObserver] = list(observers)
+        self.odometry_trace = odometry_trace
         seed_everything(config.seed)
 
     def add_observer(self, observer: SlamObserver) -> None:
@@ -168,7 +175,9 @@ class Slam:
         frame.require_depth()
         if self.bound is None:
             self.bound = bound_from_frame(frame.depth, frame.K, self.T_w_c0, margin=self.cfg.auto_bound_margin)
-        self.runner = SlamRunner(self.cfg, self.K, self.height, self.width, self.bound, self.timer)
+        self.runner = SlamRunner(self.cfg, self.K, self.height, self.width, self.bound, self.timer,
+                                 odometry_trace=self.odometry_trace)
+        self.odometry_trace = None   # the runner's frontend holds it now
         return self.runner.start(frame, self.T_w_c0, self.progress)
 
     # ------------------------------------------------------------------------------------------------ state

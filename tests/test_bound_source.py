@@ -65,6 +65,9 @@ def test_the_default_command_takes_the_bound_from_the_data(user_recording, tmp_p
     # the bound lies around the offset room, not around the origin
     b = np.asarray(m["bound"])
     assert np.all(b[:, 0] < OFFSET) and np.all(OFFSET < b[:, 1])
+    # the fused run's frontend replays the pre-pass's registrations instead of registering every frame again
+    log = (out / "run.log").read_text()
+    assert f"replaying a recorded {m['n_frames']}-frame pass" in log and "not the recorded pass's next" not in log
 
 
 def test_the_old_fixed_bound_fails_the_same_recording(user_recording, tmp_path, capsys):
@@ -87,7 +90,7 @@ def test_the_prepass_bound_holds_every_camera_centre_with_a_margin(trajectory, t
     seq = open_sequence(generate(tmp_path / trajectory, scene="room", trajectory=trajectory, n_frames=20, seed=1,
                                  width=160, height=120, show_progress=False))
     gt = seq.gt_poses()
-    b = bound_from_prepass(seq, build_config("synthetic").odometry, gt[0])
+    b, _ = bound_from_prepass(seq, build_config("synthetic").odometry, gt[0])
     centres = gt[:, :3, 3]
     margin = build_config("synthetic").auto_bound_margin / 2
     assert np.all(centres - margin > b[:, 0]) and np.all(centres + margin < b[:, 1]), (b.tolist(), trajectory)
@@ -130,6 +133,6 @@ def test_the_prepass_bound_holds_every_view_of_the_real_excerpts(name, preset, s
     cfg = build_config(preset, overrides=[f"dataset.options.stride={stride}"])
     seq = open_sequence(path, options=cfg.reader_options())
     gt = seq.gt_poses()
-    b = bound_from_prepass(seq, cfg.odometry, gt[0])
+    b, _ = bound_from_prepass(seq, cfg.odometry, gt[0])
     worst = max(fraction_outside(seq[i].depth, seq[i].K, gt[i], b) for i in range(0, len(seq), 2))
     assert worst < 0.05, (worst, b.tolist())

@@ -226,3 +226,73 @@ def test_a_weak_registration_is_kept_but_not_trusted(sequence):
         assert all(r.trusted is (trusted_fitness == 0.0) for r in res)
         poses[trusted_fitness] = [r.T_w_c for r in res]
     np.testing.assert_array_equal(poses[0.0], poses[1.0])
+
+
+def _states_equal(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], dict):
+            _states_equal(a[k], b[k])
+        elif isinstance(a[k], np.ndarray):
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert a[k] == b[k], k
+
+
+def test_a_recorded_pass_is_replayed_without_registering(sequence, monkeypatch):
+    """An odometry replaying a recorded pass (the bound pre-pass's, in a fused run) returns the recorded results
+    without registering anything and ends in the state registering would have left (bit for bit: the same
+    results on one Open3D thread)."""
+    import lrslam.frontend.odometry as odometry_module
+    from lrslam.pipeline.determinism import open3d_threads
+
+    f0, cfg = sequence[0], OdometryConfig()
+    with open3d_threads(True):
+        rec = Odometry(cfg, f0.K, f0.height, f0.width, record=True)
+        recorded = [rec.reset(T_W_C_REF, f0)] + [rec.track(f) for f in sequence[1:]]
+    trace = rec.trace()
+    assert [s.result for s in trace.steps] == recorded and all(s.problem is None for s in trace.steps)
+
+    def no_registration(*args, **kwargs):
+        raise AssertionError("a replayed frame was registered")
+
+    with monkeypatch.context() as m:
+        m.setattr(odometry_module, "register_rgbd", no_registration)
+        m.setattr(odometry_module, "frame_problem", no_registration)
+        replay = Odometry(cfg, f0.K, f0.height, f0.width, replay=trace)
+        replayed = [replay.reset(T_W_C_REF, f0)] + [replay.track(f) for f in sequence[1:]]
+    assert replay.replayed == len(sequence)
+    assert replayed == recorded
+    _states_equal(replay.state_dict(), rec.state_dict())
+    with pytest.raises(RuntimeError, match="record=True"):
+        replay.trace()
+
+
+def test_a_replay_registers_from_the_first_frame_that_differs(sequence, caplog):
+    """A frame whose images are not the recorded ones (or a different config or first pose) ends the replay:
+    from there on every frame is registered, with the same results as an odometry that never replayed."""
+    from lrslam.pipeline.determinism import open3d_threads
+
+    caplog.set_level(logging.INFO, logger="lrslam.frontend.odometry")
+    f0, cfg = sequence[0], OdometryConfig()
+    changed = list(sequence)
+    changed[4] = _blank(sequence[4], with_depth=True)
+    with open3d_threads(True):
+        rec = Odometry(cfg, f0.K, f0.height, f0.width, record=True)
+        for i, f in enumerate(sequence):
+            rec.reset(T_W_C_REF, f) if i == 0 else rec.track(f)
+        plain = Odometry(cfg, f0.K, f0.height, f0.width)
+        expected = [plain.reset(T_W_C_REF, f0)] + [plain.track(f) for f in changed[1:]]
+        replay = Odometry(cfg, f0.K, f0.height, f0.width, replay=rec.trace())
+        got = [replay.reset(T_W_C_REF, f0)] + [replay.track(f) for f in changed[1:]]
+    assert replay.replayed == 4 and "frame 4 is not the recorded pass's next frame" in caplog.text
+    assert not got[4].ok
+    for a, b in zip(got, expected):
+        np.testing.assert_array_equal(a.T_w_c, b.T_w_c)
+        assert (a.ok, a.ref_index, a.reason) == (b.ok, b.ref_index, b.reason)
+    _states_equal(replay.state_dict(), plain.state_dict())
+    for other_cfg, T0 in ((OdometryConfig(retry=False), T_W_C_REF), (cfg, np.eye(4))):
+        odo = Odometry(other_cfg, f0.K, f0.height, f0.width, replay=rec.trace())
+        odo.reset(T0, f0)
+        odo.track(sequence[1])
+        assert odo.replayed == 0

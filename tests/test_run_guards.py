@@ -96,7 +96,7 @@ def test_prepass_bound_covers_every_view_of_a_walking_camera(tmp_path):
     seq = open_sequence(generate(tmp_path / "s", scene="room", trajectory="loop", n_frames=12, seed=1, width=160,
                                  height=120, show_progress=False))
     gt = seq.gt_poses()
-    b = bound_from_prepass(seq, OdometryConfig(), gt[0])
+    b, _ = bound_from_prepass(seq, OdometryConfig(), gt[0])
     frames = [seq[i] for i in range(len(seq))]
     worst = max(fraction_outside(f.depth, f.K, gt[i], b) for i, f in enumerate(frames))
     assert worst < 0.02
