@@ -142,8 +142,8 @@ def _fingerprint(view: RGBDView) -> int:
 class Odometry:
     """Tracks a sequence of RGB-D frames from one camera (intrinsics ``K`` (3, 3), images ``height`` x ``width``).
 
-    ``record``: keep every frame's result for :meth:`trace`. ``replay``: a trace of an earlier pass; from
-    :meth:`reset` on, each frame that matches the trace's next step (same index and images, same config,
+    ``record``: keep every frame's result for :meth:`trace`. ``replay``: a trace of an earlier pass; from the
+    next :meth:`reset` on, each frame that matches the trace's next step (same index and images, same config,
     intrinsics and first pose) takes the recorded result instead of being registered again; from the first
     frame that does not, every frame is registered (logged once)."""
 
@@ -156,9 +156,9 @@ class Odometry:
         self.cfg = cfg
         self.height, self.width = int(height), int(width)
         self._record = record
-        self._replay = replay
-        self.replayed = 0   # frames that took a recorded result since the last reset
+        self._replay: OdometryTrace | None = None
         self.reset()
+        self._replay = replay   # applies from the next reset (the one that gives the first pose)
 
     # -- state -----------------------------------------------------------------------------------------------
     def reset(self, T_w_c0: np.ndarray | None = None, frame: FrameLike | None = None) -> OdometryResult | None:
