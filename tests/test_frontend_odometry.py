@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from frontend_fixtures import T_W_C_REF, make_frame, make_room
+from run_fixtures import assert_same
 from lrslam.errors import InputError
 from lrslam.frame import Frame
 from lrslam.frontend.model_tracking import ModelTrackingConfig
@@ -228,17 +229,6 @@ def test_a_weak_registration_is_kept_but_not_trusted(sequence):
     np.testing.assert_array_equal(poses[0.0], poses[1.0])
 
 
-def _states_equal(a: dict, b: dict) -> None:
-    assert a.keys() == b.keys()
-    for k in a:
-        if isinstance(a[k], dict):
-            _states_equal(a[k], b[k])
-        elif isinstance(a[k], np.ndarray):
-            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
-        else:
-            assert a[k] == b[k], k
-
-
 def test_a_recorded_pass_is_replayed_without_registering(sequence, monkeypatch):
     """An odometry replaying a recorded pass (the bound pre-pass's, in a fused run) returns the recorded results
     without registering anything and ends in the state registering would have left (bit for bit: the same
@@ -263,7 +253,7 @@ def test_a_recorded_pass_is_replayed_without_registering(sequence, monkeypatch):
         replayed = [replay.reset(T_W_C_REF, f0)] + [replay.track(f) for f in sequence[1:]]
     assert replay.replayed == len(sequence)
     assert replayed == recorded
-    _states_equal(replay.state_dict(), rec.state_dict())
+    assert_same(replay.state_dict(), rec.state_dict())
     with pytest.raises(RuntimeError, match="record=True"):
         replay.trace()
 
@@ -290,7 +280,7 @@ def test_a_replay_registers_from_the_first_frame_that_differs(sequence, caplog):
     for a, b in zip(got, expected):
         np.testing.assert_array_equal(a.T_w_c, b.T_w_c)
         assert (a.ok, a.ref_index, a.reason) == (b.ok, b.ref_index, b.reason)
-    _states_equal(replay.state_dict(), plain.state_dict())
+    assert_same(replay.state_dict(), plain.state_dict())
     for other_cfg, T0 in ((OdometryConfig(retry=False), T_W_C_REF), (cfg, np.eye(4))):
         odo = Odometry(other_cfg, f0.K, f0.height, f0.width, replay=rec.trace())
         odo.reset(T0, f0)

@@ -22,7 +22,7 @@ from lrslam.errors import InputError
 from lrslam.pipeline.config import build_config
 from lrslam.trajectory_io import read_tum
 
-from run_fixtures import TINY as _TINY, fail_at_frame, synthetic_room
+from run_fixtures import TINY as _TINY, assert_same, fail_at_frame, synthetic_room
 
 TINY = _TINY + ["output.mesh=false", "output.plots=false"]
 
@@ -30,24 +30,6 @@ TINY = _TINY + ["output.mesh=false", "output.plots=false"]
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
     return synthetic_room(tmp_path_factory.mktemp("resume") / "room", n_frames=16, seed=1)
-
-
-def assert_same(a, b, where: str = "state") -> None:
-    """Deep equality of plain state data (dicts, lists, tuples, numpy arrays bit for bit, numbers)."""
-    if isinstance(a, dict):
-        assert isinstance(b, dict) and list(a) == list(b), f"{where}: keys {list(a)} != {list(b)}"
-        for k in a:
-            assert_same(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert isinstance(b, (list, tuple)) and len(a) == len(b), f"{where}: lengths differ"
-        for n, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{n}]")
-    elif isinstance(a, np.ndarray):
-        b = np.asarray(b)
-        assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
-        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), f"{where}: values differ"
-    else:
-        assert a == b, f"{where}: {a!r} != {b!r}"
 
 
 def _through_file(state: dict, tmp_path: Path) -> dict:
