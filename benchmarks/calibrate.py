@@ -133,10 +133,10 @@ def main() -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--threads", type=int, default=None)
     a = ap.parse_args()
-    if a.threads:
-        from lrslam.threads import set_threads
+    from lrslam.threads import flush_denormals, set_threads
 
-        set_threads(a.threads)
+    set_threads(a.threads)
+    flush_denormals()   # as `lrslam run`: before any pool starts
     from lrslam.datasets.registry import open_sequence
     from lrslam.evaluation.factors import factor_chi2
     from lrslam.pipeline.config import build_config

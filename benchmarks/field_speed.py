@@ -133,6 +133,9 @@ def worker(spec: dict) -> dict:
     import numpy as np
     import torch
 
+    from lrslam.threads import flush_denormals
+
+    flush_denormals()   # as a run does (lrslam.threads), before the pools start
     model, map_step, track_step = _setup(spec)
     dev = torch.device(spec["device"])
 

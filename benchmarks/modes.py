@@ -189,10 +189,10 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/bench_modes"))
     a = ap.parse_args()
     setup_console_logging()
-    if a.threads:
-        from lrslam.threads import set_threads
+    from lrslam.threads import flush_denormals, set_threads
 
-        set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP
+    set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP; None: the libraries' choice
+    flush_denormals()        # as `lrslam run`: before any pool starts
     texts, oks = [], []
     if a.suite in ("synthetic", "all"):
         from lrslam.datasets.synth.noise import NoiseConfig

@@ -310,6 +310,9 @@ def main() -> int:
         import torch
 
         torch.set_num_threads(a.threads)
+    from lrslam.threads import flush_denormals
+
+    flush_denormals()   # as `lrslam run` (lrslam.threads), before any pool starts
     a.docs.mkdir(parents=True, exist_ok=True)
     work = a.work / size.name
     t0 = time.perf_counter()

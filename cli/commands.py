@@ -11,7 +11,7 @@ import typer
 from lrslam.errors import InputError
 from lrslam.jsonio import dumps
 from lrslam.logs import setup_console_logging
-from lrslam.threads import set_threads
+from lrslam.threads import flush_denormals, set_threads
 
 __all__ = ["run", "params", "batch", "report", "DEMO_SYNTH"]
 
@@ -118,6 +118,7 @@ def run(
 
     setup_console_logging()
     set_threads(threads)
+    flush_denormals()   # before any thread pool starts: every thread of the run inherits it
     if demo:
         config = config or "synthetic"
     ov = list(overrides or [])

@@ -36,6 +36,7 @@ from lrslam.pipeline.run_folder import PartialTrajectory, prepare_run_folder
 from lrslam.pipeline.sanity import run_status
 from lrslam.pipeline.slam import FrameResult, Slam
 from lrslam.pipeline.timing import StageTimer
+from lrslam.threads import flush_denormals
 
 if TYPE_CHECKING:
     from lrslam.frontend.odometry import OdometryTrace
@@ -305,6 +306,7 @@ def run_sequence(path: str | Path, cfg: RunConfig, out_dir: str | Path, progress
     Returns the per-frame timestamps (N,) and poses (N, 4, 4) ``T_w_c`` plus the metrics dict (as written to
     ``metrics.json``, with ``status`` "ok" or "degraded").
     """
+    flush_denormals()   # before the pre-pass or the field start a thread pool (lrslam.threads)
     out_dir = Path(out_dir)
     if resume and (out_dir / "metrics.json").is_file() and not (out_dir / CHECKPOINT_NAME).exists():
         raise InputError(f"--resume: {out_dir}: the run there finished (metrics.json); nothing to resume")

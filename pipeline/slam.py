@@ -41,6 +41,7 @@ from lrslam.pipeline.determinism import open3d_threads, seed_everything
 from lrslam.pipeline.observer import FrameEvent, SlamObserver
 from lrslam.pipeline.runner import FrameRecord, SlamResult, SlamRunner
 from lrslam.pipeline.timing import StageTimer
+from lrslam.threads import flush_denormals
 
 if TYPE_CHECKING:
     from lrslam.frontend.odometry import OdometryTrace
@@ -91,7 +92,9 @@ class Slam:
             the frontend where its config, camera, first pose and images match (:class:`Odometry`'s ``replay``).
 
     A new Slam seeds Python's, numpy's and torch's RNGs with ``config.seed``: two runs with the same config and
-    frames repeat (bit for bit with ``config.deterministic`` on the CPU).
+    frames repeat (bit for bit with ``config.deterministic`` on the CPU). It also flushes subnormal float results
+    to zero in the calling thread and the threads started from it afterwards (:func:`lrslam.threads.flush_denormals`:
+    the field's backward passes produce many, each ~100x slower on x86).
     """
 
     def __init__(self, config: RunConfig, K: np.ndarray, image_size: tuple[int, int], *,
@@ -114,6 +117,7 @@ class Slam:
         self.observers: list[SlamObserver] = list(observers)
         self.odometry_trace = odometry_trace
         seed_everything(config.seed)
+        flush_denormals()   # the field's threads start later and inherit it (lrslam.threads)
 
     def add_observer(self, observer: SlamObserver) -> None:
         """Watch the run from the next frame on: ``observer.on_frame(event)`` after every :meth:`track`,

@@ -198,6 +198,48 @@ def test_set_threads_sets_torch_and_the_environment(monkeypatch):
         torch.set_num_threads(old)
 
 
+_SUBNORMAL_PROBE = """
+import sys, threading
+import numpy as np
+if sys.argv[1] == "slam":
+    from lrslam import Slam
+    from lrslam.pipeline.config import build_config
+    Slam(build_config("synthetic"), np.array([[50.0, 0, 40], [0, 50.0, 30], [0, 0, 1]]), (80, 60))
+from lrslam.field import cpu_kernels
+tiny = np.float32(1e-20)   # tiny * tiny = 1e-40: subnormal in float32
+out = {}
+t = threading.Thread(target=lambda: out.update(numpy=float(np.float32(tiny) * np.float32(tiny))))
+t.start(); t.join()
+lines = [np.full((2, 1), v, np.float32) for v in (tiny, tiny, 1.0)]
+res = np.empty((64, 1), np.float32)   # 64 samples: numba splits them over its pool's threads
+cpu_kernels.cp_forward(*lines, np.zeros((64, 3), np.int64), np.zeros((64, 3), np.float32), 1, res)
+from scipy.spatial import cKDTree
+pts = np.random.default_rng(0).random((2000, 3))
+pts[:1000, 2] = 0.0   # half on the plane z = 0: with DAZ too (torch's set_flush_denormal) cKDTree segfaults here
+cKDTree(pts)
+print(out["numpy"], int(np.count_nonzero(res)))
+"""
+
+
+def test_a_run_flushes_subnormal_floats_in_every_thread_it_starts():
+    """A new Slam sets flush-to-zero before any pool starts, so a thread started later and numba's pool compute
+    1e-20 * 1e-20 as 0 (a subnormal costs ~100x on x86: the CP backward ran 2.7x slower on a run's gradients);
+    without it the same products are 1e-40. Subnormal inputs keep their value (FTZ without DAZ): scipy's
+    cKDTree still builds on points lying on a plane through 0 (it crashed the mesh evaluation with DAZ)."""
+    import subprocess
+    import sys
+
+    def probe(arg):
+        out = subprocess.run([sys.executable, "-c", _SUBNORMAL_PROBE, arg], capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr
+        value, nonzero = out.stdout.split()
+        return float(value), int(nonzero)
+
+    assert probe("plain") == (pytest.approx(1e-40, rel=0.01), 64)
+    assert probe("slam") == (0.0, 0)
+
+
 def test_default_preset_follows_the_dataset_and_the_device(tmp_path):
     from lrslam.datasets.synth.writer import generate
     from lrslam.pipeline.config_source import default_preset
