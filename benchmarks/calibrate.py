@@ -135,7 +135,8 @@ def main() -> int:
     a = ap.parse_args()
     from lrslam.threads import flush_denormals, set_threads
 
-    set_threads(a.threads)
+    if a.threads:
+        set_threads(a.threads)
     flush_denormals()   # as `lrslam run`: before any pool starts
     from lrslam.datasets.registry import open_sequence
     from lrslam.evaluation.factors import factor_chi2

@@ -191,8 +191,9 @@ def main() -> int:
     setup_console_logging()
     from lrslam.threads import flush_denormals, set_threads
 
-    set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP; None: the libraries' choice
-    flush_denormals()        # as `lrslam run`: before any pool starts
+    if a.threads:
+        set_threads(a.threads)   # torch, numba and (before Open3D loads) OpenMP
+    flush_denormals()            # as `lrslam run`: before any pool starts
     texts, oks = [], []
     if a.suite in ("synthetic", "all"):
         from lrslam.datasets.synth.noise import NoiseConfig
