@@ -28,8 +28,10 @@ def _ate_line(m: dict) -> str:
         seed = f"   (seed only: {_num(m['seed_ate_rmse_cm'], '.3f')} cm)" if "seed_ate_rmse_cm" in m else ""
         online = (f"   (before the final refinement: {_num(m['online_ate_rmse_cm'], '.3f')} cm)"
                   if "online_ate_rmse_cm" in m else "")
+        raw = (f"   (before smoothing: {_num(m['unsmoothed_ate_rmse_cm'], '.3f')} cm)"
+               if "unsmoothed_ate_rmse_cm" in m else "")
         return (f"ATE RMSE: {_num(m['ate_rmse_cm'], '.3f')} cm   mean: {_num(m.get('ate_mean_cm'), '.3f')} cm"
-                f"{seed}{online}")
+                f"{seed}{online}{raw}")
     if m.get("evaluation_error"):
         return f"ATE: evaluation failed ({m['evaluation_error']})"
     if m.get("has_ground_truth", False):

@@ -24,6 +24,7 @@ from lrslam.errors import InputError
 from lrslam.backend.graph import GraphConfig
 from lrslam.backend.loop_closure import LoopClosureConfig
 from lrslam.backend.policy import BackendConfig
+from lrslam.backend.smoother import SmoothingConfig
 from lrslam.field.config import FieldSLAMConfig
 from lrslam.frontend.keyframes import KeyframeConfig
 from lrslam.backend.frame_fusion import FusionConfig
@@ -141,6 +142,7 @@ class RunConfig(StrictModel):
     backend: BackendConfig = BackendConfig()
     fusion: FusionConfig = FusionConfig()
     schedule: ScheduleConfig = ScheduleConfig()
+    smoothing: SmoothingConfig = SmoothingConfig()
     output: OutputConfig = OutputConfig()
 
     @model_validator(mode="before")

@@ -92,9 +92,9 @@ def write_outputs(out_dir: Path, cfg, seq, result, timestamps, timer, wall_s, bo
 
 def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.ndarray | None]:
     """Write ``trajectory.txt``, ``keyframes.txt``, ``trajectory_seed.txt``, (with a frontend)
-    ``trajectory_frontend.txt`` and (after a final global refinement) ``trajectory_online.txt``, the trajectory as
-    tracked before it; returns the others than the run's own: ``{"seed": (N, 4, 4), "frontend": (N, 4, 4) or
-    None, "online": (N, 4, 4) or None}``."""
+    ``trajectory_frontend.txt``, (after a final global refinement) ``trajectory_online.txt``, the trajectory as
+    tracked before it, and (when smoothed) ``trajectory_unsmoothed.txt``; returns the others than the run's own:
+    ``{"seed": (N, 4, 4), "frontend": (N, 4, 4) or None, "online": ..., "unsmoothed": ...}``."""
     poses = result.poses
     n = len(poses)
     write_tum(out_dir / "trajectory.txt", timestamps, poses, header=f"lrslam {cfg.mode} T_w_c")
@@ -109,7 +109,11 @@ def _write_trajectories(out_dir: Path, cfg, result, timestamps) -> dict[str, np.
     if online is not None:
         write_tum(out_dir / "trajectory_online.txt", timestamps, online,
                   header="T_w_c as tracked, before the final global refinement")
-    return {"seed": seed, "frontend": frontend, "online": online}
+    unsmoothed = result.unsmoothed_poses[:n] if result.unsmoothed_poses is not None else None
+    if unsmoothed is not None:
+        write_tum(out_dir / "trajectory_unsmoothed.txt", timestamps, unsmoothed,
+                  header="T_w_c before the final smoothing (smoothing.enabled)")
+    return {"seed": seed, "frontend": frontend, "online": online, "unsmoothed": unsmoothed}
 
 
 def _write_factors(path: Path, factors, timestamps) -> None:
@@ -190,7 +194,8 @@ def _plot(path_png: Path, cfg, seq, timestamps, poses, extra: dict[str, np.ndarr
         gt_pair = (np.asarray(seq.timestamps), gt) if gt is not None else None
         shown, shown_ates = {cfg.mode: (timestamps, poses)}, {cfg.mode: ates.get(None)}
         for name, other in extra.items():
-            if other is not None and name not in shown and (name != "frontend" or _frontend_is_apart(cfg)):
+            if (other is not None and name not in shown and name != "unsmoothed"
+                    and (name != "frontend" or _frontend_is_apart(cfg))):
                 shown[name], shown_ates[name] = (timestamps, other), ates.get(name)
         plot_trajectories(path_png, shown, gt_pair, title=f"lrslam {cfg.mode}", ates=shown_ates)
     except Exception as e:

@@ -74,6 +74,8 @@ class SlamResult:
     device: the field's device or None. timestamps: (N,) seconds of the frames (set by :class:`lrslam.Slam`).
     online_poses: (N, 4, 4) ``T_w_c`` as tracked online, before the final global refinement moved keyframes
     (``backend.final_refine``); None when no final refinement was solved (``poses`` are then the online ones).
+    unsmoothed_poses: (N, 4, 4) ``T_w_c`` before the final smoothing (``smoothing``, :mod:`lrslam.backend.smoother`;
+    set by :meth:`lrslam.Slam.finish`); None when it was not smoothed.
     """
 
     poses: np.ndarray
@@ -88,6 +90,7 @@ class SlamResult:
     timestamps: np.ndarray | None = None
     factors: tuple[FactorRecord, ...] = ()
     online_poses: np.ndarray | None = None
+    unsmoothed_poses: np.ndarray | None = None
 
 
 class SlamRunner:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lrslam.backend.smoother import smooth_trajectory
 from lrslam.errors import InputError
 from lrslam.frame import Frame
 from lrslam.pipeline.auto_bound import bound_from_frame
@@ -226,6 +227,13 @@ class Slam:
             raise InputError("Slam.finish: no frame was tracked")
         result = self.runner.finish(mesh=self.cfg.output.mesh if mesh is None else mesh,
                                     mesh_resolution=mesh_resolution or self.cfg.output.mesh_resolution)
-        result = replace(result, timestamps=np.asarray(self.timestamps, dtype=np.float64))
+        ts = np.asarray(self.timestamps, dtype=np.float64)
+        result = replace(result, timestamps=ts)
+        smoothed = smooth_trajectory(result.poses, ts, self.cfg.smoothing)
+        if smoothed.applied:
+            log.info("trajectory smoothed (motion prior weight %.3g, per-frame noise %.2f mm, largest shift %.2f mm)",
+                     smoothed.lam_t, 1000 * smoothed.noise_m, 1000 * smoothed.moved_m)
+            result = replace(result, poses=smoothed.poses, unsmoothed_poses=result.poses,
+                             counts={**result.counts, "smoothing": smoothed.summary()})
         self._notify(lambda obs: obs.on_finish(result))
         return result

@@ -108,7 +108,7 @@ def test_online_trajectory_is_the_run_without_the_final_refinement(tiny_sequence
     with the final refinement off (deterministic), which writes no such file."""
     from lrslam.pipeline.run import run_sequence
 
-    base = TINY + ["deterministic=true", "fusion.warmup_keyframes=1", "output.mesh=false"]
+    base = TINY + ["deterministic=true", "fusion.warmup_keyframes=1", "output.mesh=false", "smoothing.enabled=false"]
     on = build_config("synthetic", overrides=base + ["backend.final_refine_when=always"], mode="fused")
     off = build_config("synthetic", overrides=base + ["backend.final_refine=false"], mode="fused")
     run_sequence(tiny_sequence, on, tmp_path / "on", progress=False)
@@ -123,6 +123,30 @@ def test_online_trajectory_is_the_run_without_the_final_refinement(tiny_sequence
     assert not np.allclose(refined, tracked, atol=1e-6)   # the refinement did move keyframes
     assert m_on["online_ate_rmse_cm"] == pytest.approx(m_off["ate_rmse_cm"], abs=1e-4)
     assert not (tmp_path / "off" / "trajectory_online.txt").exists() and "online_ate_rmse_cm" not in m_off
+
+
+def test_the_trajectory_is_smoothed_last_and_the_poses_as_tracked_are_kept(tiny_sequence, tmp_path):
+    """A run returns its trajectory smoothed under the motion prior (lrslam.backend.smoother) and keeps the poses
+    before it in ``trajectory_unsmoothed.txt`` with their ATE: exactly the trajectory of the same run with the
+    smoothing off (deterministic), which writes no such file."""
+    from lrslam.backend.smoother import smooth_trajectory
+    from lrslam.pipeline.run import run_sequence
+
+    base = TINY + ["deterministic=true", "output.mesh=false"]
+    run_sequence(tiny_sequence, build_config("synthetic", overrides=base, mode="fused"), tmp_path / "on",
+                 progress=False)
+    run_sequence(tiny_sequence, build_config("synthetic", overrides=base + ["smoothing.enabled=false"], mode="fused"),
+                 tmp_path / "off", progress=False)
+    ts, raw = read_tum(tmp_path / "on" / "trajectory_unsmoothed.txt")
+    _, tracked = read_tum(tmp_path / "off" / "trajectory.txt")
+    _, smoothed = read_tum(tmp_path / "on" / "trajectory.txt")
+    assert np.allclose(raw, tracked, atol=1e-6)
+    assert np.allclose(smoothed, smooth_trajectory(raw, ts).poses, atol=1e-5)
+    m_on = json.loads((tmp_path / "on" / "metrics.json").read_text())
+    m_off = json.loads((tmp_path / "off" / "metrics.json").read_text())
+    assert m_on["smoothing"]["applied"] and m_on["smoothing"]["lambda_position"] >= 0
+    assert m_on["unsmoothed_ate_rmse_cm"] == pytest.approx(m_off["ate_rmse_cm"], abs=1e-4)
+    assert not (tmp_path / "off" / "trajectory_unsmoothed.txt").exists() and "smoothing" not in m_off
 
 
 def test_the_frontend_with_its_own_graph_closes_loops(tmp_path):
