@@ -99,7 +99,7 @@ def _summaries(results: dict[str, dict]) -> dict[str, dict]:
         v["loops"] = ({k: float(np.mean([lp[k] for lp in loops])) for k in loops[0]} if loops else None)
         for key in ("fpt_s", "fpt_first_third_s", "fpt_last_third_s", "n_keyframes", "n_loop_closures",
                     "n_graph_solves", "n_remaps", "refinements_rejected", "frontend_ate_rmse_cm",
-                    "online_ate_rmse_cm", "seeds_weak", "seeds_overruled_by_field"):
+                    "online_ate_rmse_cm", "unsmoothed_ate_rmse_cm", "seeds_weak", "seeds_overruled_by_field"):
             vals = [m[key] for m in ok if m.get(key) is not None]
             v[key] = float(np.mean(vals)) if vals else None
     return out
@@ -120,16 +120,18 @@ def report(title: str, results: dict[str, dict]) -> tuple[str, bool]:
     """Markdown table + the promise check for one sequence."""
     s = _summaries(results)
     lines = [f"## {title}", "",
-             "| variant | ATE RMSE cm: mean | spread | per seed | before final refinement | s/frame | first / last third | keyframes | "
+             "| variant | ATE RMSE cm: mean | spread | per seed | before smoothing | before final refinement | s/frame | "
+             "first / last third | keyframes | "
              "loops kept | loops proposed / rejected (registration, map, graph) | solves | re-maps | "
              "refinements rejected | seeds weak / overruled |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, v in s.items():
         a = v["ate"]
         spread = f"{a.min():.2f}-{a.max():.2f}" if len(a) else "-"
         per = ", ".join(f"{x:.2f}" for x in a) + (f" ({len(v['errors'])} failed)" if v["errors"] else "")
         thirds = f"{_fmt(v['fpt_first_third_s'], '{:.3f}')} / {_fmt(v['fpt_last_third_s'], '{:.3f}')}"
-        lines.append(f"| {name} | {_fmt(v['mean'])} | {spread} | {per} | {_fmt(v['online_ate_rmse_cm'])} | "
+        lines.append(f"| {name} | {_fmt(v['mean'])} | {spread} | {per} | {_fmt(v['unsmoothed_ate_rmse_cm'])} | "
+                     f"{_fmt(v['online_ate_rmse_cm'])} | "
                      f"{_fmt(v['fpt_s'], '{:.3f}')} | {thirds} | "
                      f"{_fmt(v['n_keyframes'], '{:.0f}')} | {_fmt(v['n_loop_closures'], '{:.0f}')} | "
                      f"{_loops(v['loops'])} | "

@@ -98,7 +98,8 @@ def _run(seq: Path, preset: str, repr_name: str, out: Path, overrides: list[str]
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev["metrics"]
-    cfg = build_config(preset, repr_name, overrides=overrides, mode="field")
+    # the paper's figures are of the online trajectory: no final smoothing (lrslam.backend.smoother) here
+    cfg = build_config(preset, repr_name, overrides=[*overrides, "smoothing.enabled=false"], mode="field")
     t = time.process_time()
     m = dict(run_sequence(seq, cfg, out, progress=False).metrics)
     # CPU seconds per frame of this process (1 thread: what the run takes alone); the wall-clock fpt_s also

@@ -195,6 +195,8 @@ class RunConfig(StrictModel):
             out.append(f"graph solved {self.backend.optimise.replace('_', ' ')}")
         if self.fusion.per_frame and p.refiner == "field" and p.seeder == "odometry":
             out.append("odometry and field fused at every frame by their measured noise")
+        if self.smoothing.enabled:
+            out.append("trajectory smoothed at the end")
         size = self.reader_options().resize
         out.append("images " + (f"resized to {size[0]}x{size[1]}" if size else "at their own size"))
         return "; ".join(out)

@@ -165,7 +165,9 @@ def _write_mesh(out_dir: Path, cfg, seq, result, timer, metrics: dict):
     None, or the extracted mesh when only writing it failed)."""
     mesh = None
     try:
-        mesh = _mesh(result, seq, result.poses, cfg, timer)
+        # the poses as tracked, as the field's mesh (the smoothing moves positions only, not the rotations with them)
+        tracked = result.unsmoothed_poses if result.unsmoothed_poses is not None else result.poses
+        mesh = _mesh(result, seq, tracked, cfg, timer)
         if len(mesh.faces) == 0:
             log.warning("the mesh is empty (nothing observed inside the bound?)")
             metrics["mesh_error"] = "empty mesh"

@@ -2,7 +2,8 @@
 
 Run folder (every run): ``config.yaml`` (resolved config, the reader actually used, ``provenance``; feed it
 back with ``--config``), ``trajectory.txt`` (TUM, every frame, input timestamps), ``keyframes.txt`` (TUM),
-``trajectory_seed.txt`` (the per-frame seeds: odometry or constant velocity), ``mesh.ply``, ``metrics.json``
+``trajectory_seed.txt`` (the per-frame seeds: odometry or constant velocity), ``trajectory_unsmoothed.txt`` (the
+poses as tracked, before the final smoothing: :mod:`lrslam.backend.smoother`), ``mesh.ply``, ``metrics.json``
 (strict JSON, with ``status: ok | degraded``), ``trajectory.png`` and ``run.log``. While the run is going,
 ``trajectory_partial.txt`` holds the poses tracked so far (rewritten atomically every ``partial_every`` frames
 and on a crash or interrupt; removed on success), and ``checkpoint.pt`` the run's state every

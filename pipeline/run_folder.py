@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 PARTIAL_NAME = "trajectory_partial.txt"
 _PARTIAL_TMP = ".trajectory_partial.txt.tmp"
-# Every file a run writes (trajectory_*.txt covers the seed and partial trajectories).
+# Every file a run writes (trajectory_*.txt covers the seed, frontend, online, unsmoothed and partial trajectories).
 RUN_OUTPUTS = ("config.yaml", "trajectory.txt", "keyframes.txt", "metrics.json", "mesh.ply", "trajectory.png",
                "run.log", _PARTIAL_TMP, CHECKPOINT_NAME, CHECKPOINT_TMP)
 _OUTPUT_GLOBS = ("trajectory_*.txt",)

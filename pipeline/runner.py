@@ -67,13 +67,15 @@ class FrameRecord:
 class SlamResult:
     """Everything a run produced, for the output writers (they never reach into the runner).
 
-    poses: (N, 4, 4) ``T_w_c``. keyframe_ids: frame indices. seed_poses: (N, 4, 4) per-frame seeds.
+    poses: (N, 4, 4) ``T_w_c`` (after :meth:`lrslam.Slam.finish`: smoothed under the motion prior,
+    :mod:`lrslam.backend.smoother`). keyframe_ids: frame indices. seed_poses: (N, 4, 4) per-frame seeds.
     frontend_poses: (N, 4, 4) the frontend's own estimate (odometry alone) or None without one.
     records: per-frame :class:`FrameRecord`. counts: loops, solves, re-maps, reverted mapping poses ...
     mesh: the field's mesh (``trimesh.Trimesh``) or None. parameters: field parameter counts or None.
     device: the field's device or None. timestamps: (N,) seconds of the frames (set by :class:`lrslam.Slam`).
     online_poses: (N, 4, 4) ``T_w_c`` as tracked online, before the final global refinement moved keyframes
-    (``backend.final_refine``); None when no final refinement was solved (``poses`` are then the online ones).
+    (``backend.final_refine``); None when no final refinement was solved (the poses before smoothing are then the
+    online ones).
     unsmoothed_poses: (N, 4, 4) ``T_w_c`` before the final smoothing (``smoothing``, :mod:`lrslam.backend.smoother`;
     set by :meth:`lrslam.Slam.finish`); None when it was not smoothed.
     """

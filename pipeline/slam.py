@@ -8,7 +8,7 @@ Usage (any loop that produces frames: a camera callback, a ROS node, a notebook)
     slam = Slam(build_config("tum-cpu"), K, (640, 480))          # K (3, 3) pixels; image (width, height)
     for rgb, depth, t in camera:                                  # (H, W, 3) uint8 RGB, (H, W) float32 metres, s
         res = slam.track(rgb, depth, t)                           # res.T_w_c (4, 4), res.keyframe, res.status
-    result = slam.finish()                                        # poses (N, 4, 4), keyframes, mesh, counts
+    result = slam.finish()                                        # poses (N, 4, 4) smoothed, keyframes, mesh
 
 ``lrslam run`` drives the same object over the frames of a folder or bag (one code path); it adds the run folder
 around it (outputs, partial trajectory, checkpoints: :mod:`lrslam.pipeline.run`).
@@ -222,7 +222,10 @@ class Slam:
 
     def finish(self, mesh: bool | None = None, mesh_resolution: float | None = None) -> SlamResult:
         """End the run: the last mapping round is collected and the field meshed (``mesh``: default
-        ``config.output.mesh``). Returns the frozen result with the frames' ``timestamps``."""
+        ``config.output.mesh``). Returns the frozen result with the frames' ``timestamps``; its ``poses`` are the
+        trajectory smoothed under the motion prior (``config.smoothing``, :mod:`lrslam.backend.smoother`; the field's
+        mesh is built at the keyframe poses as tracked), ``unsmoothed_poses`` the poses as tracked, which
+        :meth:`poses` keeps returning."""
         if self.runner is None:
             raise InputError("Slam.finish: no frame was tracked")
         result = self.runner.finish(mesh=self.cfg.output.mesh if mesh is None else mesh,

@@ -132,19 +132,24 @@ def test_the_trajectory_is_smoothed_last_and_the_poses_as_tracked_are_kept(tiny_
     from lrslam.backend.smoother import smooth_trajectory
     from lrslam.pipeline.run import run_sequence
 
-    base = TINY + ["deterministic=true", "output.mesh=false"]
-    run_sequence(tiny_sequence, build_config("synthetic", overrides=base, mode="fused"), tmp_path / "on",
-                 progress=False)
+    base = TINY + ["deterministic=true", "output.mesh=false", "smoothing.min_frames=8"]   # 12 frames here
+    cfg = build_config("synthetic", overrides=base, mode="fused")
+    run_sequence(tiny_sequence, cfg, tmp_path / "on", progress=False)
     run_sequence(tiny_sequence, build_config("synthetic", overrides=base + ["smoothing.enabled=false"], mode="fused"),
                  tmp_path / "off", progress=False)
     ts, raw = read_tum(tmp_path / "on" / "trajectory_unsmoothed.txt")
     _, tracked = read_tum(tmp_path / "off" / "trajectory.txt")
     _, smoothed = read_tum(tmp_path / "on" / "trajectory.txt")
     assert np.allclose(raw, tracked, atol=1e-6)
-    assert np.allclose(smoothed, smooth_trajectory(raw, ts).poses, atol=1e-5)
+    assert np.allclose(smoothed, smooth_trajectory(raw, ts, cfg.smoothing).poses, atol=1e-5)
     m_on = json.loads((tmp_path / "on" / "metrics.json").read_text())
     m_off = json.loads((tmp_path / "off" / "metrics.json").read_text())
-    assert m_on["smoothing"]["applied"] and m_on["smoothing"]["lambda_position"] >= 0
+    assert m_on["smoothing"]["applied"] and m_on["smoothing"]["max_shift_cm"] > 0
+    assert not np.allclose(smoothed, raw, atol=1e-6)
+    # the keyframes file holds the same (smoothed) poses at the keyframes' rows
+    kts, kposes = read_tum(tmp_path / "on" / "keyframes.txt")
+    rows = [int(np.flatnonzero(ts == k)[0]) for k in kts]
+    assert len(rows) >= 2 and np.array_equal(kposes, smoothed[rows])
     assert m_on["unsmoothed_ate_rmse_cm"] == pytest.approx(m_off["ate_rmse_cm"], abs=1e-4)
     assert not (tmp_path / "off" / "trajectory_unsmoothed.txt").exists() and "smoothing" not in m_off
 
