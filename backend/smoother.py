@@ -99,13 +99,19 @@ def _times(t: np.ndarray | None, n: int) -> np.ndarray:
     return t
 
 
-def _second_differences(x: np.ndarray, t: np.ndarray, k: int) -> np.ndarray:
-    """Second derivative of ``x`` (N, d) at every frame ``i`` from frames ``i - k, i, i + k`` at times ``t``,
-    times ``(k h)^2`` with ``h`` the median frame interval: ``x_{i+k} - 2 x_i + x_{i-k}`` at even spacing.
-    (N - 2k, d)."""
+def _second_difference_weights(t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weights ``(c0, c2)`` (N - 2k,) of frames ``i - k`` and ``i + k`` (frame ``i`` takes ``-(c0 + c2)``) in the
+    second derivative at every frame ``i`` at times ``t``, times ``(k h)^2`` with ``h`` the median frame interval:
+    ``(1, -2, 1)`` at even spacing."""
     h0, h1 = t[k:-k] - t[:-2 * k], t[2 * k:] - t[k:-k]
     s = (k * float(np.median(np.diff(t)))) ** 2
-    c0, c2 = 2.0 * s / (h0 * (h0 + h1)), 2.0 * s / (h1 * (h0 + h1))
+    return 2.0 * s / (h0 * (h0 + h1)), 2.0 * s / (h1 * (h0 + h1))
+
+
+def _second_differences(x: np.ndarray, t: np.ndarray, k: int) -> np.ndarray:
+    """Second derivative of ``x`` (N, d) at every frame from frames ``k`` apart (weights of
+    :func:`_second_difference_weights`): ``x_{i+k} - 2 x_i + x_{i-k}`` at even spacing. (N - 2k, d)."""
+    c0, c2 = _second_difference_weights(t, k)
     return c0[:, None] * x[:-2 * k] - (c0 + c2)[:, None] * x[k:-k] + c2[:, None] * x[2 * k:]
 
 
@@ -115,7 +121,8 @@ def estimate_lambda(x: np.ndarray, t: np.ndarray | None = None, spacing: int = 3
     evenly spaced): returns ``(lam, sigma_m)``, ``sigma_m`` the per-frame white noise per component (units of
     ``x``), from the second differences at spacing 1 and ``spacing`` (module docstring). ``lam`` is clipped to
     ``[0, max_lambda]``; ``max_lambda`` where the second differences do not grow with the spacing (no smooth
-    motion is measurable), 0 for a noise-free series (noise under 1e-9). ValueError: ``spacing < 2``, ``N <= 2 spacing``, bad times."""
+    motion is measurable), 0 for a noise-free series (noise under 1e-9). ValueError: ``spacing < 2``,
+    ``N <= 2 spacing``, bad times."""
     x = np.asarray(x, dtype=np.float64)
     x = x.reshape(len(x), -1)
     if spacing < 2:
@@ -130,7 +137,7 @@ def estimate_lambda(x: np.ndarray, t: np.ndarray | None = None, spacing: int = 3
     if var_m <= _NO_NOISE ** 2:          # rounding only (a noise-free series): nothing to smooth
         return 0.0, math.sqrt(var_m)
     if var_a <= 0:
-        return (max_lambda if var_m > 0 else 0.0), math.sqrt(var_m)
+        return max_lambda, math.sqrt(var_m)
     return float(min(var_m / var_a, max_lambda)), math.sqrt(var_m)
 
 
@@ -153,9 +160,7 @@ def whittaker(x: np.ndarray, lam: float, t: np.ndarray | None = None, keep_first
     rows = np.repeat(np.arange(n - 2), 3)
     cols = (np.arange(n - 2)[:, None] + np.arange(3)[None, :]).ravel()
     # the rows of _second_differences at spacing 1, as a matrix
-    h0, h1 = t[1:-1] - t[:-2], t[2:] - t[1:-1]
-    s = float(np.median(np.diff(t))) ** 2
-    c0, c2 = 2.0 * s / (h0 * (h0 + h1)), 2.0 * s / (h1 * (h0 + h1))
+    c0, c2 = _second_difference_weights(t, 1)
     vals = np.stack([c0, -(c0 + c2), c2], 1).ravel()
     D = sp.csr_matrix((vals, (rows, cols)), shape=(n - 2, n))
     A = (sp.identity(n, format="csc") + lam * (D.T @ D)).tocsc()
