@@ -41,7 +41,8 @@ from pydantic import Field
 
 from lrslam.config import StrictModel
 
-__all__ = ["SmoothingConfig", "Smoothing", "estimate_lambda", "whittaker", "smooth_trajectory"]
+__all__ = ["SmoothingConfig", "Smoothing", "estimate_lambda", "second_difference_matrix", "whittaker",
+           "smooth_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +116,18 @@ def _second_differences(x: np.ndarray, t: np.ndarray, k: int) -> np.ndarray:
     return c0[:, None] * x[:-2 * k] - (c0 + c2)[:, None] * x[k:-k] + c2[:, None] * x[2 * k:]
 
 
+def second_difference_matrix(t: np.ndarray):
+    """The rows of :func:`_second_differences` at spacing 1 for frame times ``t`` (N,) seconds, as a scipy sparse
+    (N - 2, N) matrix: ``(1, -2, 1)`` at even spacing."""
+    import scipy.sparse as sp
+
+    n = len(t)
+    c0, c2 = _second_difference_weights(t, 1)
+    rows = np.repeat(np.arange(n - 2), 3)
+    cols = (np.arange(n - 2)[:, None] + np.arange(3)[None, :]).ravel()
+    return sp.csr_matrix((np.stack([c0, -(c0 + c2), c2], 1).ravel(), (rows, cols)), shape=(n - 2, n))
+
+
 def estimate_lambda(x: np.ndarray, t: np.ndarray | None = None, spacing: int = 3,
                     max_lambda: float = 100.0) -> tuple[float, float]:
     """The motion prior's weight for the series ``x`` (N, d), one row per frame at times ``t`` (N,) seconds (None:
@@ -157,12 +170,7 @@ def whittaker(x: np.ndarray, lam: float, t: np.ndarray | None = None, keep_first
     t = _times(t, n)
     if lam == 0 or n < 3:
         return x.copy()
-    rows = np.repeat(np.arange(n - 2), 3)
-    cols = (np.arange(n - 2)[:, None] + np.arange(3)[None, :]).ravel()
-    # the rows of _second_differences at spacing 1, as a matrix
-    c0, c2 = _second_difference_weights(t, 1)
-    vals = np.stack([c0, -(c0 + c2), c2], 1).ravel()
-    D = sp.csr_matrix((vals, (rows, cols)), shape=(n - 2, n))
+    D = second_difference_matrix(t)
     A = (sp.identity(n, format="csc") + lam * (D.T @ D)).tocsc()
     X = x.reshape(n, -1)
     if not keep_first:
