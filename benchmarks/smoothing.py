@@ -15,7 +15,7 @@ Models (camera centres only; rotations are left as tracked, as the run's own smo
   kept);
 - ``ar1``: the error as a first-order autoregression (``e_i = rho e_(i-1) + noise``, ``rho`` from a grid
   0-0.95 by the best fit of ``2 v (3 - 4 rho^k + rho^2k) + k^4 v_a`` at spacings 1-6), the motion's MAP estimate
-  ``(L^T L + D^T D / lam) m = L^T L x`` (section 28: tried, not kept).
+  ``(L^T L + lam D^T D) m = L^T L x`` (:func:`ar1_solve`; section 28).
 
 Per run: the ATE RMSE (cm) under each model, and the mean over the runs given.
 
@@ -79,13 +79,11 @@ def drift_smooth(x: np.ndarray, t: np.ndarray, lam: float, q: float) -> np.ndarr
     return out
 
 
-def ar1_smooth(x: np.ndarray, t: np.ndarray, spacing: int = 6) -> np.ndarray:
-    """The ``ar1`` model of the module docstring on ``x`` (N, d) (even spacing assumed for the error)."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spl
+def ar1_fit(x: np.ndarray, t: np.ndarray, spacing: int = 6) -> tuple[float, float]:
+    """``(rho, lam)`` of the ``ar1`` model for ``x`` (N, d): the grid ``rho`` whose structure function fits best,
+    ``lam = v_noise / v_a`` (``v_noise = v (1 - rho^2)``, the autoregression's innovation), clipped at 100; 0 where
+    no error is measured."""
     from scipy.optimize import nnls
-
-    from lrslam.backend.smoother import second_difference_matrix
 
     v = _structure(x, t, spacing)
     k = np.arange(1, spacing + 1, dtype=np.float64)
@@ -95,17 +93,30 @@ def ar1_smooth(x: np.ndarray, t: np.ndarray, spacing: int = 6) -> np.ndarray:
         A = np.stack([2 * (3 - 4 * rho ** k + rho ** (2 * k)), k ** 4], 1)
         coef, res = nnls(A * w[:, None], v * w)
         if best is None or res < best[0]:
-            best = (res, rho, coef[0], coef[1])
+            best = (res, float(rho), coef[0], coef[1])
     _, rho, var_e, var_a = best
     if var_e <= 0:
+        return rho, 0.0
+    return rho, float(min(var_e * (1 - rho ** 2) / max(var_a, 1e-300), _CAP))
+
+
+def ar1_solve(x: np.ndarray, t: np.ndarray, rho: float, lam: float) -> np.ndarray:
+    """The motion ``m`` (N, d) minimising ``|L (x - m)|^2 + lam |D2 m|^2`` with ``m_0 = x_0``: ``L`` the
+    autoregression's whitening (rows ``e_i - rho e_(i-1)``, ``e_0 = 0``; even spacing assumed), ``D2`` the
+    smoother's second derivative; ``(L^T L + lam D2^T D2) m = L^T L x``. ``rho = 0`` is the Whittaker smoother."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    from lrslam.backend.smoother import second_difference_matrix
+
+    if lam <= 0:
         return x.copy()
-    lam = min(var_e * (1 - rho ** 2) / max(var_a, 1e-300), _CAP)
     n = len(x)
     L = sp.diags([np.ones(n - 1), -rho * np.ones(n - 2)], [0, -1], format="csc")
     Q = (L.T @ L).tocsc()
     d2 = second_difference_matrix(t)[:, 1:]
     out = x.copy()
-    out[1:] = spl.splu((Q + (d2.T @ d2) / lam).tocsc()).solve(Q @ (x[1:] - x[0])) + x[0]
+    out[1:] = spl.splu((Q + lam * (d2.T @ d2)).tocsc()).solve(Q @ (x[1:] - x[0])) + x[0]
     return out
 
 
@@ -129,8 +140,46 @@ def _models(lams: list[float]):
     for lam in lams:
         models[f"lam={lam:g}"] = centres(lambda x, t, lam=lam: whittaker(x, lam, t, keep_first=True))
     models["drift"] = centres(drift)
-    models["ar1"] = centres(ar1_smooth)
+    models["ar1"] = centres(lambda x, t: ar1_solve(x, t, *ar1_fit(x, t)))
     return models
+
+
+_MIN_FRAMES = 15        # second differences at spacings 1-6 (the ar1 fit) need more than 12 frames
+
+
+def _lams(text: str) -> list[float]:
+    """``--lams`` ("1,10,100") -> weights; ValueError naming the option when one is not a finite number >= 0."""
+    vals = []
+    for v in text.split(","):
+        if v.strip():
+            lam = float(v)
+            if not (np.isfinite(lam) and lam >= 0):
+                raise ValueError(v)
+            vals.append(lam)
+    return vals
+
+
+def _load_run(run: Path, sequence: str, sequences: dict):
+    """``(timestamps (N,), poses (N, 4, 4), Sequence)`` of a run folder, the sequence opened with the run's own
+    reader options (cached per options). Raises ValueError / TypeError / AttributeError / yaml.YAMLError /
+    InputError on bad input (the caller names the run)."""
+    import yaml
+
+    from lrslam.datasets import ReaderOptions, open_sequence
+    from lrslam.evaluation.ate import read_trajectory
+
+    traj, cfg_path = run / "trajectory_unsmoothed.txt", run / "config.yaml"
+    if not traj.is_file() or not cfg_path.is_file():
+        raise ValueError("no trajectory_unsmoothed.txt / config.yaml (a run folder of lrslam run)")
+    ds = yaml.safe_load(cfg_path.read_text())["dataset"]
+    options = dict(ds.get("options") or {})
+    key = (ds.get("reader"), repr(sorted(options.items())))
+    if key not in sequences:
+        sequences[key] = open_sequence(sequence, key[0], ReaderOptions(**options))
+    t, P = read_trajectory(traj)
+    if len(t) < _MIN_FRAMES or not np.all(np.diff(t) > 0):
+        raise ValueError(f"{traj}: needs at least {_MIN_FRAMES} poses at increasing times")
+    return t, P, sequences[key]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,29 +191,24 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
-    from lrslam.datasets import ReaderOptions, open_sequence
     from lrslam.errors import InputError
-    from lrslam.evaluation.ate import compute_run_ate, read_trajectory
+    from lrslam.evaluation.ate import compute_run_ate
 
-    models = _models([float(v) for v in args.lams.split(",") if v.strip()])
+    try:
+        models = _models(_lams(args.lams))
+    except ValueError as e:
+        print(f"error: --lams: {e} is not a finite number >= 0", file=sys.stderr)
+        return 2
     rows: list[tuple[str, list[float]]] = []
-    sequences = {}
+    sequences: dict = {}
     for run in map(Path, args.runs):
-        traj, cfg_path = run / "trajectory_unsmoothed.txt", run / "config.yaml"
-        if not traj.is_file() or not cfg_path.is_file():
-            print(f"error: {run}: no trajectory_unsmoothed.txt / config.yaml (a run folder of lrslam run)",
-                  file=sys.stderr)
-            return 2
-        ds = (yaml.safe_load(cfg_path.read_text()) or {}).get("dataset", {})
-        key = (ds.get("reader"), int((ds.get("options") or {}).get("stride", 1)))
         try:
-            if key not in sequences:
-                sequences[key] = open_sequence(args.sequence, key[0], ReaderOptions(stride=key[1]))
-            t, P = read_trajectory(traj)
-        except InputError as e:
-            print(f"error: {e}", file=sys.stderr)
+            t, P, seq = _load_run(run, args.sequence, sequences)
+            ate = [compute_run_ate(t, fn(P, t), seq) for fn in models.values()]
+        except (InputError, ValueError, TypeError, AttributeError, KeyError, yaml.YAMLError) as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            print(f"error: {run}: {msg}", file=sys.stderr)
             return 2
-        ate = [compute_run_ate(t, fn(P, t), sequences[key]) for fn in models.values()]
         if any(a is None for a in ate):
             print(f"error: {args.sequence}: no ground truth", file=sys.stderr)
             return 2
