@@ -34,24 +34,35 @@ from pathlib import Path
 
 import numpy as np
 
-_CAP = 100.0            # the largest weight of each error term, as the shipped smoothing's max_lambda
+from lrslam.backend.smoother import SmoothingConfig
+
+_CAP = SmoothingConfig().max_lambda   # each error term's largest weight: the shipped smoothing's
+_MIN_FRAMES = 15        # second differences at spacings 1-6 (the ar1 fit) need more than 12 frames
 
 
-def _structure(x: np.ndarray, t: np.ndarray, spacing: int) -> np.ndarray:
-    """Mean squared second differences of ``x`` (N, 3) at spacings ``1 .. spacing`` (per component)."""
+def _structure_fit(x: np.ndarray, t: np.ndarray, spacing: int, columns) -> tuple[np.ndarray, float]:
+    """Non-negative least squares of the mean squared second differences of ``x`` (N, d) at spacings ``k = 1 ..
+    spacing`` (per component) against ``columns(k)`` ((spacing,) -> (spacing, m) design), on relative residuals:
+    ``(coefficients (m,), residual norm)``."""
+    from scipy.optimize import nnls
+
     from lrslam.backend.smoother import _second_differences
 
-    return np.array([np.mean(_second_differences(x, t, k) ** 2) for k in range(1, spacing + 1)])
+    k = np.arange(1, spacing + 1, dtype=np.float64)
+    v = np.array([np.mean(_second_differences(x, t, int(ki)) ** 2) for ki in k])
+    w = 1.0 / np.maximum(v, 1e-300)
+    coef, res = nnls(columns(k) * w[:, None], v * w)
+    return coef, float(res)
+
+
+def _ratio(a: float, b: float) -> float:
+    """``a / b`` clipped at the cap (``b`` may be 0: no motion measured)."""
+    return float(min(a / max(b, 1e-300), _CAP))
 
 
 def drift_fit(x: np.ndarray, t: np.ndarray, spacing: int = 4) -> tuple[float, float, float]:
     """``(v_w, v_r, v_a)``: white, random-walk step and motion variances per component (module docstring)."""
-    from scipy.optimize import nnls
-
-    v = _structure(x, t, spacing)
-    k = np.arange(1, spacing + 1, dtype=np.float64)
-    w = 1.0 / np.maximum(v, 1e-300)
-    coef, _ = nnls(np.stack([np.full_like(k, 6.0), 2.0 * k, k ** 4], 1) * w[:, None], v * w)
+    coef, _ = _structure_fit(x, t, spacing, lambda k: np.stack([np.full_like(k, 6.0), 2.0 * k, k ** 4], 1))
     return float(coef[0]), float(coef[1]), float(coef[2])
 
 
@@ -83,21 +94,14 @@ def ar1_fit(x: np.ndarray, t: np.ndarray, spacing: int = 6) -> tuple[float, floa
     """``(rho, lam)`` of the ``ar1`` model for ``x`` (N, d): the grid ``rho`` whose structure function fits best,
     ``lam = v_noise / v_a`` (``v_noise = v (1 - rho^2)``, the autoregression's innovation), clipped at 100; 0 where
     no error is measured."""
-    from scipy.optimize import nnls
-
-    v = _structure(x, t, spacing)
-    k = np.arange(1, spacing + 1, dtype=np.float64)
-    w = 1.0 / np.maximum(v, 1e-300)
     best = None
     for rho in np.linspace(0.0, 0.95, 20):
-        A = np.stack([2 * (3 - 4 * rho ** k + rho ** (2 * k)), k ** 4], 1)
-        coef, res = nnls(A * w[:, None], v * w)
+        coef, res = _structure_fit(x, t, spacing,
+                                   lambda k, rho=rho: np.stack([2 * (3 - 4 * rho ** k + rho ** (2 * k)), k ** 4], 1))
         if best is None or res < best[0]:
             best = (res, float(rho), coef[0], coef[1])
     _, rho, var_e, var_a = best
-    if var_e <= 0:
-        return rho, 0.0
-    return rho, float(min(var_e * (1 - rho ** 2) / max(var_a, 1e-300), _CAP))
+    return rho, (_ratio(var_e * (1 - rho ** 2), var_a) if var_e > 0 else 0.0)
 
 
 def ar1_solve(x: np.ndarray, t: np.ndarray, rho: float, lam: float) -> np.ndarray:
@@ -132,8 +136,7 @@ def _models(lams: list[float]):
 
     def drift(x, t):
         vw, vr, va = drift_fit(x, t)
-        lam = min(vw / max(va, 1e-300), _CAP)
-        q = min(vr / max(va, 1e-300), _CAP)
+        lam, q = _ratio(vw, va), _ratio(vr, va)
         return drift_smooth(x, t, lam, q) if q > 0 else whittaker(x, lam, t, keep_first=True)
 
     models = {"tracked": lambda P, t: P, "shipped": lambda P, t: smooth_trajectory(P, t).poses}
@@ -142,9 +145,6 @@ def _models(lams: list[float]):
     models["drift"] = centres(drift)
     models["ar1"] = centres(lambda x, t: ar1_solve(x, t, *ar1_fit(x, t)))
     return models
-
-
-_MIN_FRAMES = 15        # second differences at spacings 1-6 (the ar1 fit) need more than 12 frames
 
 
 def _lams(text: str) -> list[float]:
