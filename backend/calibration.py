@@ -8,8 +8,9 @@ variance of the frontend's and of the field's motion over a keyframe gap (:class
 
 - ``odometry`` and ``loop`` factors (both registrations of two views by the same frontend) keep the *shape* of their
   Hessian (which directions the geometry constrains) and get its *scale* from the data: per block (rotation,
-  translation) a factor ``alpha`` such that the odometry factors' mean per-axis variance equals the measured one
-  (:func:`registration_scale`); the loops get the same ``alpha``;
+  translation) a factor ``alpha`` such that the registrations' mean per-axis variance equals the measured one
+  (:func:`registration_scale`; a chain of per-frame steps standing in for a failed registration does not count);
+  the loops and those chains get the same ``alpha``;
 - ``field`` factors get the measured field variance per axis (the tracker's Hessian is not a registration's, and
   its scale is the one measured least well); ``field_pose`` records (the field's own pose of a keyframe, an
   absolute measurement against the map) get half of it (:meth:`GapNoise.field_pose_information`).
@@ -76,8 +77,19 @@ def scaled_information(information: np.ndarray, alpha: np.ndarray) -> np.ndarray
     return np.asarray(information, dtype=np.float64) * np.outer(s, s)
 
 
+def _scale_setters(factors: Sequence) -> list[np.ndarray]:
+    """The informations the registrations' scale is measured on: the odometry factors that are registrations. A
+    keyframe whose registration failed its gates gets its chain of per-frame steps instead (``source="chain"``),
+    stated n steps loose; in the mean it would outweigh the registrations and make them (and the loops, which
+    share the scale) too precise. Where every odometry factor is a chain (``BackendConfig.odometry_factor="chain"``,
+    the noise then being the chain's) the chains set it."""
+    odometry = [f for f in factors if f.kind == "odometry"]
+    registrations = [f.information for f in odometry if f.source != "chain"]
+    return registrations or [f.information for f in odometry]
+
+
 def calibrated(factors: Sequence, noise: GapNoise, registrations: bool = True) -> list:
-    """``factors`` (frozen dataclasses with ``kind`` and ``information``, e.g.
+    """``factors`` (frozen dataclasses with ``kind``, ``information`` and ``source``, e.g.
     :class:`lrslam.backend.policy.FactorRecord`) with their informations calibrated by ``noise`` (module
     docstring); other kinds (a prior) unchanged. ``registrations=False``: ``odometry`` and ``loop`` factors keep
     their stated informations, only the field's are calibrated (data whose colour is registered to its depth only
@@ -85,7 +97,7 @@ def calibrated(factors: Sequence, noise: GapNoise, registrations: bool = True) -
     frame-to-frame chain and the keyframe registration, which share the colour's error and so agree; on the
     7-Scenes excerpt the calibrated odometry factors came out 40x too precise against ground truth, chi2 / dof
     38-49, the stated ones near 1, docs/BENCHMARKS.md section 15)."""
-    alpha = registration_scale([f.information for f in factors if f.kind == "odometry"], noise.odometry)
+    alpha = registration_scale(_scale_setters(factors), noise.odometry)
     field_info = np.diag(1.0 / np.repeat(np.maximum(noise.field, _EPS), 3))
     out = []
     for f in factors:

@@ -199,16 +199,19 @@ class FrameFusion:
              T_frontend: np.ndarray | None, trusted: bool = True) -> FusedPose:
         """Fuse one frame: ``T_seed`` (the last fused pose times the odometry increment; a constant-velocity guess
         when ``odometry_ok`` is False), ``T_field`` the field's pose (None when tracking failed or was not kept),
-        ``T_frontend`` the frontend's own pose of the frame (None when its odometry failed); ``trusted`` False for
-        a weak registration (:attr:`lrslam.frontend.odometry.OdometryResult.trusted`): the frame fuses as one without
-        odometry, but the frontend's chain goes on (its error belongs in the noise estimate: leaving the weak steps
-        out made the odometry look 6-7x more precise, in sigma, on TUM fr1/rpy at every 3rd frame). Predict
+        ``T_frontend`` the frontend's own pose of the frame (None when its odometry failed: that breaks the
+        frontend's chain for the keyframe gap); ``trusted`` False for a weak registration
+        (:attr:`lrslam.frontend.odometry.OdometryResult.trusted`): the frame fuses as one without odometry, but the
+        frontend's chain goes on (its error belongs in the noise estimate: leaving the weak steps out made the
+        odometry look 6-7x more precise, in sigma, on TUM fr1/rpy at every 3rd frame); the same for a seed the
+        field's arbitration overruled (``odometry_ok`` False while ``T_frontend`` is given: those are the frontend's
+        largest errors, and leaving their gaps out made its noise look smaller). Predict
         ``P + q`` (the fallback variance without odometry), update with the field: share ``k = P / (P + r)`` (0
         where the field is gated out, 1 without odometry), ``P = (1 - k) P``."""
         c = self.cfg
         self._field = None if T_field is None else np.asarray(T_field, dtype=np.float64).copy()
         self._frontend = None if T_frontend is None else np.asarray(T_frontend, dtype=np.float64).copy()
-        self._chain_ok = self._chain_ok and odometry_ok and T_frontend is not None
+        self._chain_ok = self._chain_ok and T_frontend is not None
         odometry_ok = odometry_ok and trusted
         self._frames += 1
         q, r, gated = self.variances()

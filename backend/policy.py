@@ -150,13 +150,16 @@ class FactorRecord:
     (:mod:`lrslam.evaluation.factors`) and the final refinement: ``kind`` (``odometry``, ``field`` or ``loop``
     between factors; ``field_pose``: the field's own tracked pose of keyframe ``i == j``, ``T_i_j`` then being
     ``T_w_i``), keyframe ids ``i``, ``j`` (frame indices), the measurement ``T_i_j`` (4, 4) and its ``information``
-    (6, 6; right perturbation, ``[rotation, translation]``) as its source stated it."""
+    (6, 6; right perturbation, ``[rotation, translation]``) as its source stated it; ``source``: for an odometry
+    factor, ``"registration"`` or ``"chain"`` (:class:`lrslam.backend.keyframe_link.KeyframeLinkMeasurement`),
+    empty otherwise."""
 
     kind: str
     i: int
     j: int
     T_i_j: np.ndarray
     information: np.ndarray
+    source: str = ""
 
 
 class GraphBackend:
@@ -264,7 +267,7 @@ class GraphBackend:
         # 2. Frontend factor: its own keyframe-to-keyframe estimate.
         link = self.link.measure(j, frame)
         if "odometry" in factors and link is not None and link.trusted:
-            self._add("odometry", link.i, link.j, link.T_i_j, link.information)
+            self._add("odometry", link.i, link.j, link.T_i_j, link.information, link.source)
         # 3. Loops against earlier keyframes.
         loops = []
         if "loop" in factors:
@@ -279,13 +282,13 @@ class GraphBackend:
         self.n_loops += len(loops)
         return loops, link
 
-    def _add(self, kind: str, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray) -> None:
-        """Add a between factor to the graph and to :attr:`measurements`."""
+    def _add(self, kind: str, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, source: str = "") -> None:
+        """Add a between factor to the graph and to :attr:`measurements` (``source``: an odometry factor's)."""
         add = {"field": self.graph.add_field_relative, "odometry": self.graph.add_odometry,
                "loop": self.graph.add_loop}[kind]
         add(i, j, T_i_j, information)
         self.measurements.append(FactorRecord(kind, int(i), int(j), np.array(T_i_j, dtype=np.float64),
-                                              np.array(information, dtype=np.float64)))
+                                              np.array(information, dtype=np.float64), source))
 
     def _solve(self, poses: dict[int, np.ndarray], edges: tuple[tuple[int, int], ...]) -> Correction:
         """Step 4: solve from the trajectory's poses, field factors re-stated from them (the graph never reverts

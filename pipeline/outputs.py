@@ -120,7 +120,8 @@ def _write_factors(path: Path, factors, timestamps) -> None:
     """``factors.npz``: every pose-graph measurement as it was added, with the information the graph weighs it by
     (calibrated by the run's measured noise with ``backend.calibrate``): ``kind`` (``field_pose``: the field's own pose of
     keyframe ``i == j``, ``T_i_j`` then ``T_w_i``), frame indices ``i``, ``j``, their timestamps ``t_i``, ``t_j``
-    (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6); nothing without a graph."""
+    (s), ``T_i_j`` (n, 4, 4), ``information`` (n, 6, 6), ``source`` (an odometry factor's: ``registration``, or
+    ``chain`` where the keyframe registration failed its gates; empty for other kinds); nothing without a graph."""
     if not factors:
         return
     ts = np.asarray(timestamps, dtype=np.float64)
@@ -128,7 +129,8 @@ def _write_factors(path: Path, factors, timestamps) -> None:
     j = np.array([f.j for f in factors], dtype=np.int64)
     np.savez_compressed(path, kind=np.array([f.kind for f in factors]), i=i, j=j, t_i=ts[i], t_j=ts[j],
                         T_i_j=np.stack([f.T_i_j for f in factors]),
-                        information=np.stack([f.information for f in factors]))
+                        information=np.stack([f.information for f in factors]),
+                        source=np.array([f.source for f in factors]))
 
 
 def _factor_calibration(metrics: dict, seq, timestamps, factors) -> None:

@@ -97,6 +97,26 @@ def test_calibrated_factors_have_unit_normalised_residuals():
     assert 0.8 < np.mean(pose_chi2) < 1.25, np.mean(pose_chi2)
 
 
+def test_chain_fallbacks_do_not_set_the_registrations_scale():
+    """Closed form: a keyframe whose registration failed its gates gets the chained per-frame steps as its odometry
+    factor (``source="chain"``), stated ~10x looser than a registration. The registrations' scale must come from
+    the registrations alone: with 8 registrations and 2 chains in the list, the registrations still calibrate to
+    exactly the measured variance (a mean over all ten made them 2.8x too precise in this case)."""
+    measured = np.array([np.diag(COV)[:3].mean(), np.diag(COV)[3:].mean()])
+    noise = GapNoise(measured, measured, True)
+    records = [FactorRecord("odometry", k, k + 1, np.eye(4), H_STATED.copy()) for k in range(8)]
+    records += [FactorRecord("odometry", k, k + 1, np.eye(4), H_STATED / 10, source="chain") for k in (8, 9)]
+    cal = calibrated(records, noise)
+    for f in cal[:8]:
+        cov = np.linalg.inv(f.information)
+        assert np.allclose([np.diag(cov)[:3].mean(), np.diag(cov)[3:].mean()], measured)
+    chain_cov = np.linalg.inv(cal[8].information)   # the same scale: ten times the registrations' variance
+    assert np.allclose([np.diag(chain_cov)[:3].mean(), np.diag(chain_cov)[3:].mean()], 10 * measured)
+    # with only chains (odometry_factor="chain"), they set the scale themselves
+    only = calibrated(records[8:], noise)
+    assert np.allclose(np.diag(np.linalg.inv(only[0].information))[3:].mean(), measured[1])
+
+
 def test_registrations_can_keep_their_stated_informations():
     """``calibrate_registrations=False`` (the 7-Scenes presets): odometry and loop factors keep the information
     their registration stated, to the last bit, while the field's are calibrated as with it on; the backend weighs

@@ -188,21 +188,24 @@ def test_factor_chi2_is_one_for_honest_information():
     assert res["odometry"].trans_rms_cm == pytest.approx(0.3 * np.sqrt(3), rel=0.05)
 
 
-def test_weak_odometry_takes_the_field_but_keeps_the_chain():
-    """A weak registration (``trusted`` False) fuses as a frame without odometry (the field's word), unlike a
-    failed one it leaves the frontend's chain intact: the keyframe gap's chain-registration pair is counted."""
+def test_weak_or_overruled_odometry_takes_the_field_but_keeps_the_chain():
+    """A weak registration (``trusted`` False), or a seed the field's arbitration overruled (``odometry_ok`` False
+    while the frontend has its own pose), fuses as a frame without odometry (the field's word); unlike a failed
+    odometry (no frontend pose) it leaves the frontend's chain intact: the keyframe gap's chain-registration pair
+    is counted. (Leaving the overruled gaps out, the frontend's largest errors, made its noise look smaller.)"""
     T_field = exp_se3(np.array([0, 0, 0.1, 0.05, 0, 0]))
     T_frontend = exp_se3(np.array([0, 0, 0, 0.02, 0, 0]))
     counts = {}
-    for case, (ok, trusted) in {"weak": (True, False), "failed": (False, True)}.items():
+    cases = {"weak": (True, False, T_frontend), "overruled": (False, True, T_frontend), "failed": (False, True, None)}
+    for case, (ok, trusted, frontend) in cases.items():
         fusion = FrameFusion(FusionConfig(per_frame=True))
         fusion.start(np.eye(4), np.eye(4))
-        out = fusion.fuse(np.eye(4), ok, T_field, T_frontend, trusted)
+        out = fusion.fuse(np.eye(4), ok, T_field, frontend, trusted)
         np.testing.assert_allclose(out.T_w_c, T_field, atol=1e-12)
         assert out.gain == (1.0, 1.0)
         fusion.on_keyframe(T_frontend)
         counts[case] = fusion.noise.counts.tolist()
-    assert counts == {"weak": [1, 1], "failed": [1, 0]}
+    assert counts == {"weak": [1, 1], "overruled": [1, 1], "failed": [1, 0]}
 
 
 def test_weak_steps_of_a_broken_frontend_are_not_fused():
